@@ -1,0 +1,94 @@
+"""XLA flag set-up that must run before JAX creates its CPU backend.
+
+Why: with jax >= 0.9 the XLA CPU backend's new "fusion emitters" make batched
+(``vmap``-ed) ``mjx.step`` roughly 1000x slower than with the flag
+``--xla_cpu_use_fusion_emitters=false`` (measured on this project's arm
+environments). XLA reads ``XLA_FLAGS`` once, when the first backend is
+initialised, so the flag has to be in the environment before then. The package
+``__init__`` therefore calls :func:`configure_xla_flags` before anything in the
+package imports jax.
+
+The flag only affects the CPU backend, so setting it on a GPU/TPU run is
+harmless; the platform check below errs towards setting it.
+
+Opt out with ``MJX_PATHTRACK_NO_XLA_FLAGS=1``.
+
+This module must not import jax.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Mapping, MutableMapping
+
+FUSION_FLAG_NAME = "xla_cpu_use_fusion_emitters"
+FUSION_FLAG = f"--{FUSION_FLAG_NAME}=false"
+OPT_OUT_VAR = "MJX_PATHTRACK_NO_XLA_FLAGS"
+
+_FALSY = {"", "0", "false", "no", "off"}
+
+
+def _opted_out(environ: Mapping[str, str]) -> bool:
+    return environ.get(OPT_OUT_VAR, "").strip().lower() not in _FALSY
+
+
+def _may_run_on_cpu(environ: Mapping[str, str]) -> bool:
+    """True unless JAX_PLATFORMS (or, if unset, JAX_PLATFORM_NAME) names only non-cpu platforms."""
+    spec = environ.get("JAX_PLATFORMS", "").strip() or environ.get("JAX_PLATFORM_NAME", "").strip()
+    names = [name.strip().lower() for name in spec.split(",") if name.strip()]
+    return not names or "cpu" in names
+
+
+def _has_fusion_flag(xla_flags: str) -> bool:
+    """True if the user already set the fusion-emitter flag, to any value."""
+    for token in xla_flags.split():
+        name = token.lstrip("-").split("=", 1)[0]
+        if name in (FUSION_FLAG_NAME, "no" + FUSION_FLAG_NAME):
+            return True
+    return False
+
+
+def xla_flags_with_cpu_fix(environ: Mapping[str, str]) -> str | None:
+    """The XLA_FLAGS value this package wants, or None to leave XLA_FLAGS alone.
+
+    Pure: reads ``environ`` only. Returns None when opted out, when the run will not use
+    the CPU backend, or when the user already chose a value for the fusion-emitter flag.
+    Otherwise returns the user's flags (kept verbatim) with ``FUSION_FLAG`` appended.
+    """
+    current = environ.get("XLA_FLAGS", "")
+    if _opted_out(environ) or not _may_run_on_cpu(environ) or _has_fusion_flag(current):
+        return None
+    return f"{current} {FUSION_FLAG}".strip()
+
+
+def configure_xla_flags(environ: MutableMapping[str, str] = os.environ) -> bool:
+    """Append ``--xla_cpu_use_fusion_emitters=false`` to ``environ["XLA_FLAGS"]`` if wanted.
+
+    Never replaces or duplicates the user's flags and respects an explicit user value of
+    the flag and the ``MJX_PATHTRACK_NO_XLA_FLAGS=1`` opt-out (see
+    :func:`xla_flags_with_cpu_fix`). Touches nothing but ``environ``.
+
+    Returns True if ``environ`` was changed.
+    """
+    new_flags = xla_flags_with_cpu_fix(environ)
+    if new_flags is None:
+        return False
+    environ["XLA_FLAGS"] = new_flags
+    return True
+
+
+def jax_backend_initialized() -> bool:
+    """True if jax is imported and has (or may have) already read XLA_FLAGS.
+
+    XLA parses XLA_FLAGS when the first backend is created (e.g. on ``jax.devices()``),
+    not on ``import jax``, so an imported but unused jax still picks the flag up.
+    """
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except Exception:  # private API moved: assume the worst
+        return True

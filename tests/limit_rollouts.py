@@ -1,0 +1,75 @@
+"""Closed-loop rollouts of the safe action space that record the worst limit usage (test helper)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_pathtrack import limits as L
+
+IIWA_POS = np.array([2.93206, 2.0594, 2.93206, 2.0594, 2.93206, 2.0594, 3.01933])
+IIWA_VEL = np.array([1.71042, 1.71042, 1.74533, 2.26893, 2.44346, 3.14159, 3.14159])
+IIWA_ACC = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
+
+POLICIES = ("random", "plus", "minus", "bang_bang", "adversarial")
+
+
+def iiwa_limits(dt: float, jerk_factor: float = 1.0) -> L.JointLimits:
+    return L.JointLimits.from_acc(-IIWA_POS, IIWA_POS, IIWA_VEL, IIWA_ACC, dt, jerk_factor)
+
+
+def _action(policy: str, key, t, p, limits: L.JointLimits, period):
+    n = p.shape[-1]
+    if policy == "random":
+        return jax.random.uniform(key, p.shape, minval=-1.0, maxval=1.0)
+    if policy == "plus":
+        return jnp.ones_like(p)
+    if policy == "minus":
+        return -jnp.ones_like(p)
+    if policy == "bang_bang":  # switch every `period` steps, per-episode period in 1..8
+        return jnp.where((t // period) % 2 == 0, 1.0, -1.0) * jnp.ones((n,))
+    if policy == "adversarial":  # always push towards the nearest position limit
+        centre = 0.5 * (limits.pos_min + limits.pos_max)
+        return jnp.where(p >= centre, 1.0, -1.0)
+    raise ValueError(policy)
+
+
+def rollout_usage(limits: L.JointLimits, dt: float, policy: str, episodes: int, steps: int, seed: int = 0):
+    """Run ``episodes`` vmapped episodes of ``steps`` decisions; return per-joint worst normalised
+    usage of (position, velocity, acceleration, jerk) over every step *and* the exact extrema
+    inside each step (1.0 = at the limit), the smallest range width, and the violation count."""
+    n = limits.n_joints
+    key = jax.random.PRNGKey(seed)
+    k0, k1, k2 = jax.random.split(key, 3)
+    span = limits.pos_max - limits.pos_min
+    p0 = limits.pos_min + span * jax.random.uniform(k0, (episodes, n), minval=0.02, maxval=0.98)
+    periods = jax.random.randint(k1, (episodes, 1), 1, 9)
+    keys = jax.random.split(k2, episodes)
+
+    def episode(p, period, key):
+        def step(carry, t):
+            p, v, a, key = carry
+            key, sub = jax.random.split(key)
+            rng = L.safe_acceleration_range_checked(limits, p, v, a, dt)
+            act = _action(policy, sub, t, p, limits, period)
+            a1 = L.action_to_acceleration(act, rng.a_min, rng.a_max)
+            ext = L.step_extrema(p, v, a, a1, dt)
+            centre = 0.5 * (limits.pos_min + limits.pos_max)
+            half = 0.5 * span
+            usage = jnp.stack([
+                jnp.maximum(ext.p_max - centre, centre - ext.p_min) / half,
+                jnp.maximum(ext.v_max, -ext.v_min) / limits.vel,
+                ext.a_abs / limits.acc,
+                ext.jerk_abs / limits.jerk,
+            ])
+            p1, v1, _ = L.integrate(p, v, a, a1, dt, dt)
+            width = rng.a_max - rng.a_min
+            return (p1, v1, a1, key), (usage, width, rng.violation)
+
+        zeros = jnp.zeros((n,))
+        _, (usage, width, viol) = jax.lax.scan(step, (p, zeros, zeros, key), jnp.arange(steps))
+        return usage.max(0), width.min(0), viol.sum()
+
+    usage, width, viol = jax.jit(jax.vmap(episode))(p0, periods, keys)
+    return np.asarray(usage.max(0)), np.asarray(width.min()), int(viol.sum())

@@ -1,0 +1,132 @@
+"""configure_xla_flags: appends the CPU fusion-emitter flag without clobbering the user's XLA_FLAGS."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from mjx_pathtrack._xla import FUSION_FLAG, OPT_OUT_VAR, configure_xla_flags
+
+USER_FLAG = "--xla_force_host_platform_device_count=2"
+
+
+def test_sets_flag_when_unset():
+    env = {}
+    assert configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == FUSION_FLAG
+
+
+def test_appends_to_existing_flags():
+    env = {"XLA_FLAGS": f"{USER_FLAG} --xla_dump_to=/tmp/x"}
+    configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == f"{USER_FLAG} --xla_dump_to=/tmp/x {FUSION_FLAG}"
+
+
+def test_idempotent():
+    env = {"XLA_FLAGS": USER_FLAG}
+    assert configure_xla_flags(env)
+    once = env["XLA_FLAGS"]
+    assert not configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == once
+    assert once.split().count(FUSION_FLAG) == 1
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        "--xla_cpu_use_fusion_emitters=true",
+        f"{USER_FLAG} --xla_cpu_use_fusion_emitters=1",
+        "--xla_cpu_use_fusion_emitters",
+    ],
+)
+def test_respects_explicit_user_value(flags):
+    env = {"XLA_FLAGS": flags}
+    assert not configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == flags
+
+
+@pytest.mark.parametrize("value", ["1", "true", "yes"])
+def test_opt_out(value):
+    env = {"XLA_FLAGS": USER_FLAG, OPT_OUT_VAR: value}
+    assert not configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == USER_FLAG
+
+
+def test_opt_out_zero_does_not_opt_out():
+    env = {OPT_OUT_VAR: "0"}
+    assert configure_xla_flags(env)
+
+
+@pytest.mark.parametrize(
+    "platform_env",
+    [
+        {"JAX_PLATFORMS": "cuda"},
+        {"JAX_PLATFORMS": "gpu"},
+        {"JAX_PLATFORMS": "tpu"},
+        {"JAX_PLATFORMS": "cuda,rocm"},
+        {"JAX_PLATFORM_NAME": "gpu"},
+    ],
+)
+def test_non_cpu_platform_left_alone(platform_env):
+    env = {"XLA_FLAGS": USER_FLAG, **platform_env}
+    assert not configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == USER_FLAG
+
+
+@pytest.mark.parametrize(
+    "platform_env",
+    [{"JAX_PLATFORMS": "cpu"}, {"JAX_PLATFORMS": "cuda,cpu"}, {"JAX_PLATFORMS": ""}, {"JAX_PLATFORM_NAME": "cpu"}],
+)
+def test_cpu_platform_gets_flag(platform_env):
+    env = dict(platform_env)
+    assert configure_xla_flags(env)
+    assert env["XLA_FLAGS"] == FUSION_FLAG
+
+
+def _run(code):
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_PLATFORMS", "JAX_PLATFORM_NAME", OPT_OUT_VAR)}
+    env["XLA_FLAGS"] = USER_FLAG
+    env["JAX_PLATFORMS"] = "cpu"
+    result = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, result.stderr
+    return result.stdout.strip()
+
+
+def test_import_appends_flag_in_subprocess():
+    flags = _run("import mjx_pathtrack, os; print(os.environ['XLA_FLAGS'])").split()
+    assert USER_FLAG in flags
+    assert FUSION_FLAG in flags
+
+
+def test_user_flag_takes_effect_after_import():
+    out = _run(
+        "import warnings; warnings.simplefilter('error')\n"
+        "import mjx_pathtrack; import jax\n"
+        "print(len(jax.devices()))"
+    )
+    assert out == "2"
+
+
+def test_warns_when_backend_already_initialized():
+    out = _run(
+        "import warnings, jax; jax.devices()\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    import mjx_pathtrack\n"
+        "print(sum('could not take effect' in str(x.message) for x in w))"
+    )
+    assert out == "1"
+
+
+def test_no_warning_when_jax_imported_but_unused():
+    out = _run(
+        "import warnings, jax\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    import mjx_pathtrack\n"
+        "print(len(w), len(jax.devices()))"
+    )
+    assert out == "0 2"
