@@ -187,7 +187,7 @@ def test_agrees_with_klimits_on_random_rollout_states(dt):
     low speed, where klimits' profile family admits a stop whose grid acceleration is positive
     while ours (capped by the exact fastest-braking peak) does not.
     """
-    klimits = pytest.importorskip("klimits")
+    import klimits  # the oracle is part of the test extra: fail loudly if it is missing
     jerk = 2 * IIWA_ACC / dt
     oracle = klimits.PosVelJerkLimitation(
         time_step=dt, pos_limits=np.stack([-IIWA_POS, IIWA_POS], 1), vel_limits=np.stack([-IIWA_VEL, IIWA_VEL], 1),
