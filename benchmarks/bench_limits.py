@@ -14,11 +14,9 @@ import numpy as np
 import mjx_pathtrack  # noqa: F401  (sets XLA flags before jax starts)
 import jax
 
+from mjx_pathtrack import iiwa
 from mjx_pathtrack import limits as L
-
-POS = np.array([2.93206, 2.0594, 2.93206, 2.0594, 2.93206, 2.0594, 3.01933])
-VEL = np.array([1.71042, 1.71042, 1.74533, 2.26893, 2.44346, 3.14159, 3.14159])
-ACC = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
+from mjx_pathtrack.iiwa import ACC, POS, VEL
 
 
 def states(batch: int, seed: int = 0):
@@ -40,7 +38,7 @@ def main() -> None:
     dt = args.dt
     jerk = 2.0 * ACC / dt
     p, v, a = states(args.batch)
-    lim = L.JointLimits.from_acc(-POS, POS, VEL, ACC, dt)
+    lim = iiwa.joint_limits(dt)
     fn = jax.jit(lambda p, v, a: L.safe_acceleration_range(lim, p, v, a, dt))
     pj, vj, aj = (jax.numpy.asarray(x, jax.numpy.float32) for x in (p, v, a))
     jax.block_until_ready(fn(pj, vj, aj))

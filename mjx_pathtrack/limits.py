@@ -170,16 +170,19 @@ def action_to_acceleration(action: Array, a_min: Array, a_max: Array) -> Array:
 def integrate(p: Array, v: Array, a0: Array, a1: Array, dt, t) -> tuple[Array, Array, Array]:
     """State ``(p, v, a)`` at time ``t in [0, dt]`` of a step whose acceleration goes linearly
     from ``a0`` to ``a1`` (constant jerk ``(a1 - a0)/dt``). All arguments broadcast."""
-    jerk = (a1 - a0) / dt
-    return (p + v * t + 0.5 * a0 * t**2 + jerk * t**3 / 6.0,
-            v + a0 * t + 0.5 * jerk * t**2,
-            a0 + jerk * t)
+    return _constant_jerk(p, v, a0, (a1 - a0) / dt, t)
+
+
+def _constant_jerk(p, v, a, jerk, t):
+    """State ``(p, v, a)`` after time ``t`` at constant ``jerk`` (Horner form)."""
+    return (p + t * (v + t * (0.5 * a + t * jerk / 6.0)),
+            v + t * (a + 0.5 * t * jerk),
+            a + jerk * t)
 
 
 def _segment_max_position(p, v, a, jerk, length):
     """Max over ``s in [0, length]`` of ``p + v s + a s^2/2 + jerk s^3/6`` (elementwise)."""
-    end = p + length * (v + length * (0.5 * a + length * jerk / 6.0))
-    best = jnp.maximum(p, end)
+    best = jnp.maximum(p, _constant_jerk(p, v, a, jerk, length)[0])
     # stationary points: jerk/2 s^2 + a s + v = 0, solved in the cancellation-free form
     disc = a * a - 2.0 * jerk * v
     root = jnp.sqrt(jnp.maximum(disc, 0.0))
@@ -190,8 +193,7 @@ def _segment_max_position(p, v, a, jerk, length):
     for s in candidates:
         inside = (disc >= 0) & (s > 0) & (s < length)
         s = jnp.where(inside, s, 0.0)
-        ps = p + s * (v + s * (0.5 * a + s * jerk / 6.0))
-        best = jnp.where(inside, jnp.maximum(best, ps), best)
+        best = jnp.where(inside, jnp.maximum(best, _constant_jerk(p, v, a, jerk, s)[0]), best)
     return best
 
 
@@ -206,9 +208,7 @@ def _braking_peak(p0, v0, a0, a1, dt, A, delta):
     t_full = m * dt
     jerk = -delta / dt
     peak_full = _segment_max_position(p1, v1, a1, jerk, t_full)
-    p2 = p1 + t_full * (v1 + t_full * (0.5 * a1 + t_full * jerk / 6.0))
-    v2 = v1 + t_full * (a1 + 0.5 * t_full * jerk)
-    a2 = a1 - m * delta
+    p2, v2, a2 = _constant_jerk(p1, v1, a1, jerk, t_full)
     peak_last = _segment_max_position(p2, v2, a2, -(a2 + A) / dt, dt)
     p3, v3, _ = integrate(p2, v2, a2, -A, dt, dt)
     peak_hold = p3 + jnp.square(jnp.maximum(v3, 0.0)) / (2.0 * A)
@@ -376,9 +376,9 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     # Recovery: a violated upper side pushes a1 down as fast as allowed, a lower side up.
     upper_bad = over_p | over_v | (hi <= floor_hi)
     lower_bad = under_p | under_v | (lo >= -neg_floor_lo)
-    rec = jnp.where(upper_bad & ~lower_bad, hi, jnp.where(lower_bad & ~upper_bad, lo, 0.5 * (lo + hi)))
-    # ranges that are empty only by rounding collapse to their midpoint
     mid = 0.5 * (lo + hi)
+    rec = jnp.where(upper_bad & ~lower_bad, hi, jnp.where(lower_bad & ~upper_bad, lo, mid))
+    # ranges that are empty only by rounding collapse to their midpoint
     a_min = jnp.where(empty, rec, jnp.minimum(lo, mid))
     a_max = jnp.where(empty, rec, jnp.maximum(hi, mid))
     # non-finite states (bad input) get "no change of acceleration" clipped to the limits

@@ -13,21 +13,17 @@ import tempfile
 
 import numpy as np
 
-IIWA_POS = np.array([2.93206, 2.0594, 2.93206, 2.0594, 2.93206, 2.0594, 3.01933])
-IIWA_VEL = np.array([1.71042, 1.71042, 1.74533, 2.26893, 2.44346, 3.14159, 3.14159])
-IIWA_ACC = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
-
-
 def rollout(dt: float, steps: int, seed: int):
     """Random-action rollout of the iiwa; returns dense time series and the per-step ranges."""
     import jax
     import jax.numpy as jnp
 
+    from mjx_pathtrack import iiwa
     from mjx_pathtrack import limits as L
 
-    lim = L.JointLimits.from_acc(-IIWA_POS, IIWA_POS, IIWA_VEL, IIWA_ACC, dt)
+    lim = iiwa.joint_limits(dt)
     rng = np.random.default_rng(seed)
-    p = jnp.asarray(rng.uniform(-0.5, 0.5, 7) * IIWA_POS, jnp.float32)
+    p = jnp.asarray(rng.uniform(-0.5, 0.5, 7) * iiwa.POS, jnp.float32)
     v = a = jnp.zeros(7)
     fn = jax.jit(lambda p, v, a: L.safe_acceleration_range(lim, p, v, a, dt))
     sub = np.linspace(0.0, dt, 11)[:-1, None]

@@ -6,17 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjx_pathtrack import iiwa
 from mjx_pathtrack import limits as L
 
-IIWA_POS = np.array([2.93206, 2.0594, 2.93206, 2.0594, 2.93206, 2.0594, 3.01933])
-IIWA_VEL = np.array([1.71042, 1.71042, 1.74533, 2.26893, 2.44346, 3.14159, 3.14159])
-IIWA_ACC = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
+IIWA_POS, IIWA_VEL, IIWA_ACC = iiwa.POS, iiwa.VEL, iiwa.ACC
+iiwa_limits = iiwa.joint_limits
 
 POLICIES = ("random", "plus", "minus", "bang_bang", "adversarial")
-
-
-def iiwa_limits(dt: float, jerk_factor: float = 1.0) -> L.JointLimits:
-    return L.JointLimits.from_acc(-IIWA_POS, IIWA_POS, IIWA_VEL, IIWA_ACC, dt, jerk_factor)
 
 
 def _action(policy: str, key, t, p, limits: L.JointLimits, period):
