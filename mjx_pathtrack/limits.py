@@ -65,6 +65,8 @@ SETTLE_FACTOR = 0.01
 POSITION_ITERATIONS = 24
 #: relative margin by which position/velocity limits are pulled in against float32 rounding
 MARGIN = 2e-6
+#: relative velocity reserve of the planned stop in the position bound (see _safe_stop_peak)
+TAIL_VEL_MARGIN = 1e-4
 
 
 # ---------------------------------------------------------------------------------------------
@@ -219,6 +221,53 @@ def _braking_peak(p0, v0, a0, a1, dt, A, delta):
     return peak, jnp.where(v1 <= 0, 1.0, k_stop)
 
 
+def _descent_state(p1, v1, a1, k, dt, A, delta):
+    """State on decision step ``1 + k`` (``k >= 0``) of the fastest descent that starts on step 1
+    at ``(p1, v1, a1)`` (see :func:`_braking_peak`). Elementwise."""
+    m = jnp.maximum(jnp.ceil((a1 + A) / delta) - 1.0, 0.0)
+    jerk = -delta / dt
+    t_full = m * dt
+    pf, vf, af = _constant_jerk(p1, v1, a1, jerk, jnp.minimum(k, m) * dt)
+    p3, v3, _ = integrate(*_constant_jerk(p1, v1, a1, jerk, t_full)[:2], a1 - m * delta, -A, dt, dt)
+    hold = jnp.maximum(k - m - 1.0, 0.0) * dt
+    ph, vh = p3 + v3 * hold - 0.5 * A * hold * hold, v3 - A * hold
+    after = k > m
+    return jnp.where(after, ph, pf), jnp.where(after, vh, vf), jnp.where(after, -A, af)
+
+
+def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps):
+    """Highest position of the lowest continuation that also keeps every velocity limit.
+
+    After the step that ends at ``a1``, the acceleration is lowered as fast as the jerk and
+    acceleration limits allow, but never below the velocity lower bound (so braking towards
+    ``P`` cannot push the velocity below ``-V`` once the joint has stopped). Far from the stop
+    the velocity bound cannot bind and the descent has a closed form; the last ``tail_steps``
+    decision steps before and after the stop are simulated. Returns ``(peak, stopped, k_stop)``
+    where ``stopped`` says the continuation reached a non-positive velocity without getting
+    stuck (a velocity bound beyond the jerk range) and ``k_stop`` is the decision step of the
+    stop."""
+    peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
+    p1, v1, _ = integrate(p0, v0, a0, a1, dt, dt)
+    # steps of plain descent that certainly come before the velocity bound can bind
+    back = jnp.ceil(A / delta) + 2.0
+    n_skip = jnp.clip(k_stop - 1.0 - back, 0.0, None)
+    p, v, a = _descent_state(p1, v1, a1, n_skip, dt, A, delta)
+    best = jnp.maximum(_segment_max_position(p0, v0, a0, (a1 - a0) / dt, dt), p)
+    stuck = jnp.zeros(p.shape, bool)
+    # Plan the stop against a slightly lower velocity limit than the real bound uses, so that
+    # a plan that ends exactly at P keeps a little braking in reserve for float32 rounding.
+    V_tail = V * (1.0 - TAIL_VEL_MARGIN)
+    for _ in range(tail_steps):
+        floor = -_velocity_upper_bound(-v, -a, V_tail, dt, A, delta, settle)
+        ceil = jnp.minimum(a + delta, A)
+        stuck = stuck | (floor > ceil + 1e-6 * A)
+        a_next = jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, ceil)
+        best = jnp.maximum(best, _segment_max_position(p, v, a, (a_next - a) / dt, dt))
+        p, v, _ = integrate(p, v, a, a_next, dt, dt)
+        a = a_next
+    return jnp.maximum(best, jnp.where(v > 0, jnp.inf, -jnp.inf)), ~stuck, k_stop
+
+
 def _first_zero_time(v, a, jerk, length):
     """First ``s in [0, length]`` with ``v + a s + jerk s^2/2 = 0`` for ``jerk < 0`` (else length)."""
     disc = a * a - 2.0 * jerk * v
@@ -250,12 +299,16 @@ def _grid_stop_bound(p0, v0, a0, P, dt, A, delta, K, n_full):
     return x, feasible
 
 
-def _position_upper_bound(p0, v0, a0, P, dt, A, delta, lo, hi, iterations):
-    """Largest ``a1 in [lo, hi]`` whose braking peak does not exceed ``max(P, p0)`` (``lo`` if
-    none; ``hi`` if all). A state that rounding left a hair above ``P`` may stay but not climb."""
-    P_eff = jnp.maximum(P, p0)
+def _position_upper_bound(p0, v0, a0, P, reserve, V, settle, dt, A, delta, lo, hi, iterations, tail_steps):
+    """Largest ``a1 in [lo, hi]`` whose velocity-safe stop (:func:`_safe_stop_peak`) does not
+    exceed ``P`` less ``reserve`` per decision step until the stop (``lo`` if none; ``hi`` if
+    all). The reserve shrinks by one step's worth as the stop comes closer, which absorbs the
+    float32 rounding of re-evaluating the same plan on the next step. A state that rounding left
+    a hair above the target may stay but not climb."""
+
     def ok(a1):
-        return _braking_peak(p0, v0, a0, a1, dt, A, delta)[0] <= P_eff
+        peak, stopped, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps)
+        return (peak <= jnp.maximum(P - reserve * k_stop, p0)) & stopped
 
     ok_hi = ok(hi)
 
@@ -276,10 +329,11 @@ def _position_upper_bound(p0, v0, a0, P, dt, A, delta, lo, hi, iterations):
     for dk in (-1.0, 0.0, 1.0):
         K = jnp.maximum(k_stop + dk, 2.0)
         for dn in (0.0, -1.0):
-            x, ok = _grid_stop_bound(p0, v0, a0, P, dt, A, delta, K, jnp.maximum(n_full + dn, 0.0))
-            take = ok & ~found
-            grid = jnp.where(take, x, grid)
-            found = found | ok
+            x, feasible = _grid_stop_bound(p0, v0, a0, P, dt, A, delta, K, jnp.maximum(n_full + dn, 0.0))
+            grid = jnp.where(feasible & ~found, x, grid)
+            found = found | feasible
+    # a grid-stop candidate counts only if the velocity-safe stop from it stays below P too
+    grid = jnp.where(found & ok(jnp.where(found, grid, lo)), grid, jnp.inf)
     return jnp.maximum(jnp.minimum(exact, grid), lo)
 
 
@@ -307,13 +361,26 @@ def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
                          (x_neg, (m >= 1) & (x_neg <= 0) & (x_neg > -settle))):
             a1 = x + m * delta
             best = jnp.where(valid, jnp.maximum(best, a1), best)
-    # a1 <= 0 and v never rises after the step: only the in-step peak matters
-    in_step_ok_at_zero = jnp.where(a0 > 0, v0 + 0.5 * a0 * dt, v0) <= V
-    gap = V - v0
+    # a1 <= 0 and v never rises after the step: only the in-step peak matters. It is checked
+    # against the hard limit (callers plan against V pulled in by MARGIN), so that a state that
+    # ended a hair below V with a tiny positive acceleration is not declared a dead end.
+    V_hard = V * (1.0 + MARGIN)
+    in_step_ok_at_zero = jnp.where(a0 > 0, v0 + 0.5 * a0 * dt, v0) <= V_hard
+    gap = V_hard - v0
     a1_in_step = jnp.where(a0 > 0, a0 - a0 * a0 * dt / (2.0 * jnp.where(gap > 0, gap, 1.0)), jnp.inf)
     a1_in_step = jnp.where((gap <= 0) & (a0 > 0), -jnp.inf, a1_in_step)
     a1_in_step = jnp.where((gap < 0) & (a0 <= 0), -jnp.inf, a1_in_step)
     return jnp.where(in_step_ok_at_zero, jnp.maximum(best, 0.0), jnp.minimum(a1_in_step, 0.0))
+
+
+def _tail_steps(limits: JointLimits, dt) -> int:
+    """Decision steps around a stop that :func:`_safe_stop_peak` simulates: enough for the
+    acceleration to swing from -A back to 0 (``A / (J dt)`` steps) plus margin. Static."""
+    try:
+        ratio = float(np.max(np.asarray(limits.acc) / (np.asarray(limits.jerk) * float(dt))))
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError, TypeError):
+        ratio = 2.0  # traced limits or dt: assume a jerk limit down to A / dt
+    return int(np.ceil(ratio)) + 5
 
 
 class SafeRange(NamedTuple):
@@ -322,9 +389,9 @@ class SafeRange(NamedTuple):
     violation: Array  # bool: state outside its limits or no safe acceleration exists
 
 
-def _upper_bounds(limits_mirror, p0, v0, a0, dt, settle_factor, iterations):
+def _upper_bounds(limits_mirror, p0, v0, a0, dt, settle_factor, iterations, tail_steps):
     """Upper bounds of one side (called mirrored for the lower side)."""
-    P, V, A, J = limits_mirror
+    P, reserve, V, A, J = limits_mirror
     delta = J * dt
     settle = settle_factor * A
     j_lo = jnp.maximum(a0 - delta, -A)
@@ -332,8 +399,8 @@ def _upper_bounds(limits_mirror, p0, v0, a0, dt, settle_factor, iterations):
     v_hi = _velocity_upper_bound(v0, a0, V, dt, A, delta, settle)
     finite = jnp.isfinite(P)
     P_safe = jnp.where(finite, P, 0.0)
-    p_hi = _position_upper_bound(jnp.where(finite, p0, 0.0), v0, a0, P_safe, dt, A, delta,
-                                 jnp.minimum(j_lo, j_hi), j_hi, iterations)
+    p_hi = _position_upper_bound(jnp.where(finite, p0, 0.0), v0, a0, P_safe, reserve, V, settle, dt, A, delta,
+                                 jnp.minimum(j_lo, j_hi), j_hi, iterations, tail_steps)
     p_hi = jnp.where(finite, p_hi, jnp.inf)
     # fastest recovery when even the lowest admissible a1 violates the limit
     hi = jnp.minimum(jnp.minimum(j_hi, v_hi), p_hi)
@@ -366,8 +433,11 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     p_tol = jnp.where(jnp.isfinite(p_tol), p_tol, 0.0)
     V = limits.vel * (1.0 - MARGIN)
     P_hi, P_lo = limits.pos_max - p_tol, limits.pos_min + p_tol
-    hi, floor_hi = _upper_bounds((P_hi, V, A, J), p, v, a, dt, settle_factor, iterations)
-    neg_lo, neg_floor_lo = _upper_bounds((-P_lo, V, A, J), -p, -v, -a, dt, settle_factor, iterations)
+    tail = _tail_steps(limits, dt)
+    reserve = 0.25 * p_tol
+    hi, floor_hi = _upper_bounds((P_hi, reserve, V, A, J), p, v, a, dt, settle_factor, iterations, tail)
+    neg_lo, neg_floor_lo = _upper_bounds((-P_lo, reserve, V, A, J), -p, -v, -a, dt, settle_factor, iterations,
+                                         tail)
     lo = -neg_lo
     over_p, under_p = p > limits.pos_max + p_tol, p < limits.pos_min - p_tol
     over_v, under_v = v > limits.vel * (1.0 + MARGIN), v < -limits.vel * (1.0 + MARGIN)

@@ -96,7 +96,7 @@ def _assert_safe(usage, min_width, violations):
     assert np.all(usage <= 1.0 + TOL), f"max normalised usage p,v,a,jerk = {usage.max(1)}"
 
 
-@pytest.mark.parametrize("dt", [0.05, 1.0 / 240.0])
+@pytest.mark.parametrize("dt", [0.1, 0.05, 1.0 / 240.0])
 @pytest.mark.parametrize("seed,policy", list(enumerate(POLICIES)))
 def test_closed_loop_never_violates_limits(dt, seed, policy):
     """1000 episodes x 100 decisions x 7 joints per case, checked at every step and at the exact
