@@ -390,24 +390,6 @@ class SafeRange(NamedTuple):
     violation: Array  # bool: state outside its limits or no safe acceleration exists
 
 
-def _upper_bounds(limits_mirror, p0, v0, a0, dt, settle_factor, iterations, tail_steps):
-    """Upper bounds of one side (called mirrored for the lower side)."""
-    P, reserve, V, A, J = limits_mirror
-    delta = J * dt
-    settle = settle_factor * A
-    j_lo = jnp.maximum(a0 - delta, -A)
-    j_hi = jnp.minimum(a0 + delta, A)
-    v_hi = _velocity_upper_bound(v0, a0, V, dt, A, delta, settle)
-    finite = jnp.isfinite(P)
-    P_safe = jnp.where(finite, P, 0.0)
-    p_hi = _position_upper_bound(jnp.where(finite, p0, 0.0), v0, a0, P_safe, reserve, V, settle, dt, A, delta,
-                                 jnp.minimum(j_lo, j_hi), j_hi, iterations, tail_steps)
-    p_hi = jnp.where(finite, p_hi, jnp.inf)
-    # fastest recovery when even the lowest admissible a1 violates the limit
-    hi = jnp.minimum(jnp.minimum(j_hi, v_hi), p_hi)
-    return hi, j_lo
-
-
 def safe_acceleration_range(limits: JointLimits, p: Array, v: Array, a: Array, dt,
                             settle_factor: float = SETTLE_FACTOR,
                             iterations: int = POSITION_ITERATIONS) -> tuple[Array, Array]:
@@ -436,17 +418,31 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     P_hi, P_lo = limits.pos_max - p_tol, limits.pos_min + p_tol
     tail = _tail_steps(limits, dt)
     reserve = 0.25 * p_tol
-    hi, floor_hi = _upper_bounds((P_hi, reserve, V, A, J), p, v, a, dt, settle_factor, iterations, tail)
-    neg_lo, neg_floor_lo = _upper_bounds((-P_lo, reserve, V, A, J), -p, -v, -a, dt, settle_factor, iterations,
-                                         tail)
-    lo = -neg_lo
+    delta = J * dt
+    settle = settle_factor * A
+    j_lo, j_hi = jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A)
+    k_lo = jnp.maximum(j_lo, -_velocity_upper_bound(-v, -a, V, dt, A, delta, settle))
+    k_hi = jnp.minimum(j_hi, _velocity_upper_bound(v, a, V, dt, A, delta, settle))
+    # Position bounds are searched inside the velocity-feasible range: an a1 that breaks a
+    # velocity limit by itself is excluded there already and must not hide a position-safe one.
+    feasible = k_lo <= k_hi
+    s_lo, s_hi = jnp.where(feasible, k_lo, j_lo), jnp.where(feasible, k_hi, j_hi)
+
+    def position_bound(P, p, v, a, lo, hi):
+        finite = jnp.isfinite(P)
+        bound = _position_upper_bound(jnp.where(finite, p, 0.0), v, a, jnp.where(finite, P, 0.0), reserve, V,
+                                      settle, dt, A, delta, lo, hi, iterations, tail)
+        return jnp.where(finite, bound, jnp.inf)
+
+    hi = jnp.minimum(k_hi, position_bound(P_hi, p, v, a, s_lo, s_hi))
+    lo = jnp.maximum(k_lo, -position_bound(-P_lo, -p, -v, -a, -s_hi, -s_lo))
     over_p, under_p = p > limits.pos_max + p_tol, p < limits.pos_min - p_tol
     over_v, under_v = v > limits.vel * (1.0 + MARGIN), v < -limits.vel * (1.0 + MARGIN)
     outside = over_p | under_p | over_v | under_v | (jnp.abs(a) > A * (1.0 + MARGIN))
     empty = lo > hi + MARGIN * A
     # Recovery: a violated upper side pushes a1 down as fast as allowed, a lower side up.
-    upper_bad = over_p | over_v | (hi <= floor_hi)
-    lower_bad = under_p | under_v | (lo >= -neg_floor_lo)
+    upper_bad = over_p | over_v | (hi <= j_lo)
+    lower_bad = under_p | under_v | (lo >= j_hi)
     mid = 0.5 * (lo + hi)
     rec = jnp.where(upper_bad & ~lower_bad, hi, jnp.where(lower_bad & ~upper_bad, lo, mid))
     # ranges that are empty only by rounding collapse to their midpoint
