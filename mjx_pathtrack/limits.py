@@ -243,10 +243,9 @@ def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps):
     acceleration limits allow, but never below the velocity lower bound (so braking towards
     ``P`` cannot push the velocity below ``-V`` once the joint has stopped). Far from the stop
     the velocity bound cannot bind and the descent has a closed form; the last ``tail_steps``
-    decision steps before and after the stop are simulated. Returns ``(peak, stopped, k_stop)``
-    where ``stopped`` says the continuation reached a non-positive velocity without getting
-    stuck (a velocity bound beyond the jerk range) and ``k_stop`` is the decision step of the
-    stop."""
+    decision steps before and after the stop are simulated. Returns ``(peak, k_stop)``: the
+    peak is ``inf`` if the simulated steps do not reach a stop; ``k_stop`` is the decision step
+    of the stop."""
     peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
     p1, v1, _ = integrate(p0, v0, a0, a1, dt, dt)
     # steps of plain descent that certainly come before the velocity bound can bind
@@ -254,19 +253,18 @@ def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps):
     n_skip = jnp.clip(k_stop - 1.0 - back, 0.0, None)
     p, v, a = _descent_state(p1, v1, a1, n_skip, dt, A, delta)
     best = jnp.maximum(_segment_max_position(p0, v0, a0, (a1 - a0) / dt, dt), p)
-    stuck = jnp.zeros(p.shape, bool)
     # Plan the stop against a slightly lower velocity limit than the real bound uses, so that
     # a plan that ends exactly at P keeps a little braking in reserve for float32 rounding.
     V_tail = V * (1.0 - TAIL_VEL_MARGIN)
     for _ in range(tail_steps):
         floor = -_velocity_upper_bound(-v, -a, V_tail, dt, A, delta, settle)
-        ceil = jnp.minimum(a + delta, A)
-        stuck = stuck | (floor > ceil + 1e-6 * A)
-        a_next = jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, ceil)
+        # (the search range is velocity-feasible, so the floor exceeds the jerk range only by
+        # the V_tail reserve; the clip keeps the jerk limit)
+        a_next = jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, jnp.minimum(a + delta, A))
         best = jnp.maximum(best, _segment_max_position(p, v, a, (a_next - a) / dt, dt))
         p, v, _ = integrate(p, v, a, a_next, dt, dt)
         a = a_next
-    return jnp.maximum(best, jnp.where(v > 0, jnp.inf, -jnp.inf)), ~stuck, k_stop
+    return jnp.maximum(best, jnp.where(v > 0, jnp.inf, -jnp.inf)), k_stop
 
 
 def _first_zero_time(v, a, jerk, length):
@@ -308,8 +306,8 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V, settle, dt, A, delta, lo, h
     a hair above the target may stay but not climb."""
 
     def ok(a1):
-        peak, stopped, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps)
-        return (peak <= jnp.maximum(P - reserve * k_stop, p0)) & stopped
+        peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps)
+        return peak <= jnp.maximum(P - reserve * k_stop, p0)
 
     ok_hi = ok(hi)
 
@@ -418,7 +416,9 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     P_hi, P_lo = limits.pos_max - p_tol, limits.pos_min + p_tol
     tail = _tail_steps(limits, dt)
     reserve = 0.25 * p_tol
-    delta = J * dt
+    # per-step jerk budget, pulled in by the float32 resolution of accelerations of size A so
+    # that a1 - a0 rounded never exceeds J dt (matters when J dt << A)
+    delta = jnp.maximum(J * dt * (1.0 - MARGIN) - 8.0 * float(np.finfo(np.float32).eps) * A, 0.0)
     settle = settle_factor * A
     j_lo, j_hi = jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A)
     k_lo = jnp.maximum(j_lo, -_velocity_upper_bound(-v, -a, V, dt, A, delta, settle))

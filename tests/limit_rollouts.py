@@ -69,3 +69,14 @@ def rollout_usage(limits: L.JointLimits, dt: float, policy: str, episodes: int, 
 
     usage, width, viol = jax.jit(jax.vmap(episode))(p0, periods, keys)
     return np.asarray(usage.max(0)), np.asarray(width.min()), int(viol.sum())
+
+
+def random_limits(dt: float, n: int = 7, seed: int = 0) -> L.JointLimits:
+    """Random joint limits whose jerk limit binds: jerk = f * 2 * acc / dt with f in [0.1, 0.9]."""
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-1.0, 1.0, n)
+    half = rng.uniform(0.2, 3.0, n)
+    acc = rng.uniform(2.0, 30.0, n)
+    vel = rng.uniform(0.3, 3.0, n)
+    jerk = rng.uniform(0.1, 0.9, n) * 2.0 * acc / dt
+    return L.JointLimits(centre - half, centre + half, vel, acc, jerk)
