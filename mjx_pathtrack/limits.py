@@ -21,25 +21,29 @@ approached so that the acceleration is ~0 on a decision step when ``V`` is reach
 the chattering a pure continuous-time bound would cause. The inversion is closed form (one
 quadratic per candidate count of full-jerk steps).
 
-*Position*: two continuations after ``a1`` are combined and the tighter one wins.
-(1) Fastest braking: the acceleration falls by ``J dt`` per decision step, the last step ending
-exactly at ``-A``, then holds ``-A``. This makes acceleration, velocity and position pointwise
-minimal among all admissible continuations, so its position peak is the smallest any
-continuation can reach; the largest ``a1`` whose peak stays below ``P`` (paper 001 eq. (6),
-(7)) is found by bisection on this monotone peak. (2) Paper 001's discrete profile (D): the
-joint reaches ``P`` with zero velocity *exactly on a decision step* ``K`` (acceleration falling
-at full jerk, held at ``-A``, one free last grid value), a 2x2 linear solve per candidate ``K``
-near the stop step of (1). Profile (2) avoids overshoot-and-return oscillations; (1) caps it so
-that the position never exceeds ``P`` between decision steps. Against klimits 1.1.3 (the
-papers' C library) the result agrees within 1e-3 a_max on > 99.9 % of random-rollout states
-at dt = 0.1 and 0.05 and is never wider there; the rare narrower states are low-speed states
-next to a limit where klimits' profile accepts a stop with positive grid acceleration that
-overshoots ``P`` inside the step, which (1) forbids.
+*Position*: ``a1_max`` is the largest value (searched inside the velocity-feasible range) for
+which a *velocity-safe stop* stays below ``P`` at every instant: after ``a1`` the acceleration
+falls by ``J dt`` per decision step down to ``-A`` (the pointwise lowest motion), except that on
+the steps around the stop it never goes below the velocity lower bound, so braking towards
+``P`` cannot push the velocity below ``-V`` once the joint has stopped (without this, states
+arise where position and velocity limits conflict). Far from the stop the descent has a closed
+form; the last few decision steps are simulated. The bound is found by bisection (always on the
+safe side). Paper 001's discrete profile (D) -- reach ``P`` with zero velocity *exactly on a
+decision step* ``K`` (acceleration falling at full jerk, held at ``-A``, one free last grid
+value; a 2x2 linear solve per candidate ``K``) -- is used instead when it is tighter and its own
+stop passes the same check: it avoids overshoot-and-return oscillations. Against klimits 1.1.3
+(the papers' C library) the result agrees within 1e-3 a_max on > 99.8 % of random-rollout states
+at dt = 0.1 and 0.05 and is never wider there; the rare narrower states are next to a limit,
+where klimits' profile accepts stops that overshoot ``P`` inside a step or leave no velocity-safe
+continuation.
 
-Known limits of this version (see the tests for what is proven): at dt = 0.1 border-case
-policies can reach states with no safe acceleration (the braking continuation's velocity
-undershoot after the stop is not yet part of the position bound); dt >= 0.4 s and limits with
-a binding jerk limit are not yet safe.
+Float32: limits are pulled in by ``MARGIN``; each planned stop keeps a position reserve per
+decision step until the stop and a small velocity reserve, so re-evaluating the same plan on
+the next step after rounding never turns it infeasible.
+
+Known limit of this version: in a narrow position corridor (a half-range below roughly the
+stopping distance from full speed) a joint that brakes hard at one limit can rebound into the
+other; the stop does not yet plan the rebound (see ``tests/limit_rollouts.random_limits``).
 
 States that already violate a limit (bad input) get the range that recovers fastest,
 collapsed to one value, and are flagged; the result is never NaN.

