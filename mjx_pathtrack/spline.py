@@ -10,7 +10,8 @@ arc length or equal integrated curvature; :func:`make_path` turns a fit into a :
 *In the environment* (pure JAX, jit/vmap-able, one path per call -- ``jax.vmap`` for batches) --
 :class:`Path` is a fixed-size pytree; :func:`point_at`, :func:`knot_window`,
 :func:`remaining_length`, :func:`replace_ahead` (path adjustment during motion),
-:func:`deviation` (REFERENCE §1.5) and :func:`truncate_at` (episode end snapped to a knot, §3.4).
+:func:`deviation` (REFERENCE §1.5), :func:`truncate_at` and :func:`sample_sub_path` (episode
+sub-path, end snapped to a knot, §3.4).
 
 Representation. Segment ``i`` (between knots ``i`` and ``i+1``) is the cubic
 ``q(t) = c0 + c1 t + c2 t^2 + c3 t^3`` for the local parameter ``t in [0, h_i]``, ``h_i`` the chord
@@ -402,6 +403,20 @@ def truncate_at(path: Path, s_end: Array) -> Path:
     k = jnp.searchsorted(path.knot_s, s_end, side="left")
     k = jnp.clip(k, 1, path.n_knots - 1)
     return path._replace(n_knots=(k + 1).astype(path.n_knots.dtype))
+
+
+def sample_sub_path(path: Path, key: Array, start_range: tuple[float, float] = (0.0, 0.8),
+                    diff_min: float = 0.2, diff_max: float = 1.0) -> tuple[Path, Array]:
+    """Random episode sub-path (REFERENCE §3.4): ``u_start ~ U(start_range)``, ``u_end ~
+    U(min(u_start + diff_min, 1), min(u_start + diff_max, 1))`` as fractions of the length; the
+    end snaps to the next knot (:func:`truncate_at`). Returns ``(path, s_start)``, ``s_start``
+    [rad] the arc position where the robot starts at rest. Jittable; vmap over keys/paths."""
+    k_start, k_end = jax.random.split(key)
+    u0 = jax.random.uniform(k_start, (), minval=start_range[0], maxval=start_range[1])
+    lo = jnp.minimum(u0 + diff_min, 1.0)
+    u1 = jax.random.uniform(k_end, (), minval=lo, maxval=jnp.minimum(u0 + diff_max, 1.0))
+    length = path.length
+    return truncate_at(path, u1 * length), u0 * length
 
 
 def deviation(path: Path, s0: Array, offsets: Array, points: Array,

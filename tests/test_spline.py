@@ -235,6 +235,18 @@ def test_truncate_at_snaps_to_next_knot(path, fit):
     np.testing.assert_array_equal(knot_window(short, ks[19], 4).index, [19, 20, 21, 21, 21])
 
 
+def test_sample_sub_path_ranges(path, fit):
+    keys = jax.random.split(jax.random.PRNGKey(0), 256)
+    sub, s0 = jax.jit(jax.vmap(S.sample_sub_path, in_axes=(None, 0)))(path, keys)
+    frac0 = np.asarray(s0) / fit.length
+    assert frac0.min() >= 0 and frac0.max() <= 0.8 and frac0.max() > 0.7
+    end = np.asarray(sub.length)
+    # the end is a knot at least 0.2 of the length after the start
+    assert np.all(end >= np.asarray(s0) + 0.2 * fit.length - 1e-4)
+    assert np.all(np.min(np.abs(end[:, None] - fit.knot_s[None]), axis=1) < 1e-5)
+    np.testing.assert_array_equal(np.asarray(sub.knot_s)[np.arange(256), np.asarray(sub.n_knots) - 1], end)
+
+
 # --------------------------------------------------------------------------------------------
 # path adjustment and deviation
 # --------------------------------------------------------------------------------------------
