@@ -155,9 +155,7 @@ def load_paths(robot: str, kind: str, split: str = "test", max_knots: int | None
     knots = load_split(robot, kind, split, root)
     if not knots:
         raise DatasetError(f"{robot}/{kind}/{split} is empty")
-    fits = [spline.fit_spline(k, samples_per_segment) for k in knots]
-    kmax = max(f.knots.shape[0] for f in fits) if max_knots is None else max_knots
-    return spline.stack_paths(spline.path_from_fit(f, kmax) for f in fits)
+    return spline.stack_fits((spline.fit_spline(k, samples_per_segment) for k in knots), max_knots)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -220,6 +220,9 @@ def test_stack_and_vmap_match_single_paths(path):
     win = jax.vmap(lambda p, x: S.knot_window(p, x, N_WINDOW))(batch, s)
     np.testing.assert_array_equal(win.index[1], knot_window(other, 2.5, N_WINDOW).index)
     np.testing.assert_allclose(batch.length, [path.length, other.length])
+    fast = S.stack_fits([S.fit_spline(smooth_knots()), S.fit_spline(smooth_knots(25, seed=3))], MAX_KNOTS)
+    for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(batch)):
+        np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="differ in shape"):
         S.stack_paths([path, S.make_path(smooth_knots(25), 30)])
     with pytest.raises(ValueError, match="max_knots is 10"):
