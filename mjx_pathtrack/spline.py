@@ -460,7 +460,7 @@ def deviation(path: Path, s0: Array, offsets: Array, points: Array,
 # ---------------------------------------------------------------------------------------------
 
 
-def fit_clamped_natural(points: Array, count: Array, d0: Array) -> tuple[Array, Array, Array]:
+def fit_clamped_natural(points: Array, count: Array, d0: Array) -> tuple[Array, Array, Array, Array]:
     """Cubic spline (JAX, fixed size) through ``points[:count]`` ``[P, n]`` with chord-length
     parameter, first derivative ``d0 [n]`` (per unit chord length) at the start and a natural end.
 
