@@ -369,7 +369,7 @@ def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "t
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mjx_pathtrack.datasets",
-                                     description="Reference-path datasets: statistics and import.")
+                                     description="Reference-path datasets: generate, statistics and import.")
     sub = parser.add_subparsers(dest="command", required=True)
     p_stats = sub.add_parser("stats", help="knots per path, path length, knot spacing per split")
     p_stats.add_argument("--robot")
@@ -382,9 +382,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_imp.add_argument("--split", default="test", choices=SPLITS)
     p_imp.add_argument("--root", default=None)
     p_imp.add_argument("--overwrite", action="store_true")
+    p_gen = sub.add_parser("generate", help="generate a dataset (random safe motions, curvature resampled)")
+    p_gen.add_argument("--robot", default="iiwa", choices=sorted(ROBOTS))
+    p_gen.add_argument("--kind", default="random")
+    p_gen.add_argument("--num-train", type=int, default=200)
+    p_gen.add_argument("--num-test", type=int, default=200)
+    p_gen.add_argument("--seed", type=int, default=0)
+    p_gen.add_argument("--root", default=None)
+    p_gen.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
     try:
-        if args.command == "stats":
+        if args.command == "generate":
+            from mjx_pathtrack.generate import generate_dataset
+
+            directory = generate_dataset(args.robot, args.kind, args.num_train, args.num_test, args.seed,
+                                         args.root, args.overwrite)
+            for name, st in stats(args.robot, args.kind, args.root).items():
+                print(st.line(name))
+            print(f"written to {directory}")
+        elif args.command == "stats":
             table = stats(args.robot, args.kind, args.root)
             if not table:
                 print(f"no datasets under {args.root or DEFAULT_ROOT}")

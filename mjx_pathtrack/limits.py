@@ -460,11 +460,13 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     return SafeRange(a_min, a_max, outside | empty | bad_input)
 
 
-def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt) -> Array:
+def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt,
+                         safe_range: tuple[Array, Array] | None = None) -> Array:
     """Next acceleration of the fastest safe stop ``[..., n]``: drive the velocity to zero as
     fast as jerk and acceleration limits allow, arriving with zero acceleration on the grid
     (velocity target 0 treated as a velocity limit with no settling margin), clipped to the
-    safe range so that position limits still hold."""
+    safe range so that position limits still hold. Pass ``safe_range=(a_min, a_max)`` of the
+    same state if it was computed already."""
     p, v, a = (jnp.asarray(x, jnp.float32) for x in (p, v, a))
     A, J = limits.acc, limits.jerk
     delta = J * dt
@@ -475,7 +477,7 @@ def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt) 
     hardest_up = _velocity_upper_bound(v, a, zero, dt, A, delta, 0.0)
     target = jnp.where(v > 0, hardest_down, jnp.where(v < 0, hardest_up, jnp.clip(zero, hardest_down, hardest_up)))
     target = jnp.clip(target, jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A))
-    a_min, a_max = safe_acceleration_range(limits, p, v, a, dt)
+    a_min, a_max = safe_acceleration_range(limits, p, v, a, dt) if safe_range is None else safe_range
     return jnp.clip(target, a_min, a_max)
 
 

@@ -1,0 +1,264 @@
+"""Path-tracking environment (paper 000 §III; REFERENCE.md §0-§2), a Brax ``Env``.
+
+One step, per environment (``jax.vmap`` over the batch; DESIGN.md "Data flow of one step"):
+
+1. the action in [-1, 1]^n is mapped into the safe acceleration range of the current state
+   or, once the path end was reached, replaced by the fastest safe braking acceleration;
+2. the acceleration goes linearly to the new value over ``dt`` (constant jerk); the setpoints
+   at ``substeps`` instants of the step form the executed motion (kinematic executor: the robot
+   follows its setpoints exactly, as for the papers' no-feedback tasks);
+3. the arc length ``l`` of the executed path-joint motion advances the position ``s`` on the
+   reference (no projection); the deviation ``d`` compares executed points with the reference
+   at equal arc length;
+4. reward ``alpha R_l + w R_d(d_max) + w R_d(d_mean) (+ R_action)``; termination on deviation,
+   robot stopped at the end (its reward multiplied by the remaining steps) or the time budget.
+
+The environment's own state is the ``pipeline_state`` (:class:`TrackState`) so that Brax's
+auto-reset restores it; use :func:`mjx_pathtrack.wrappers.wrap_for_training`, which draws a
+*fresh* episode on every reset instead of replaying the first one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import Env, State
+
+from mjx_pathtrack import limits as L
+from mjx_pathtrack import reward as R
+from mjx_pathtrack import spline as S
+
+Array = jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Episode, observation and termination settings (defaults: papers' iiwa random-path net).
+
+    dt [s]: decision step; n_next: knots ahead in the observation (N); substeps: setpoints per
+    step (24 = 1/240 s at dt 0.1); deviation_samples: comparison points per step;
+    duration [s]: time budget for a whole path (scaled by the episode's share of it);
+    start_range, min_fraction, max_fraction: random sub-path selection (REFERENCE §3.4);
+    terminate_deviation [rad] (None: off); brake_at_end / terminate_on_stop: braking at the end
+    and termination once |v|, |a| < stop_velocity / stop_acceleration; success_deviation [rad]:
+    final deviation of a successful episode; deviation_weights: per path joint (None: plain L2).
+    """
+
+    dt: float = 0.1
+    n_next: int = 8
+    substeps: int = 24
+    deviation_samples: int = 16
+    duration: float = 16.0
+    start_range: tuple[float, float] = (0.0, 0.8)
+    min_fraction: float = 0.2
+    max_fraction: float = 1.0
+    terminate_deviation: float | None = 0.25
+    brake_at_end: bool = True
+    terminate_on_stop: bool = True
+    stop_velocity: float = 0.01
+    stop_acceleration: float = 0.01
+    success_deviation: float = 0.05
+    deviation_weights: tuple[float, ...] | None = None
+    reward: R.RewardWeights = R.RewardWeights()
+
+    def max_episode_steps(self) -> int:
+        """Upper bound of the steps of any episode (the whole path at full duration)."""
+        return int(round(self.duration / self.dt)) + 1
+
+
+class TrackState(NamedTuple):
+    """Per-environment state (all float32 unless noted).
+
+    p, v, a ``[n]``: commanded joint state at the decision instant; s ``[]``: arc position on the
+    reference; s_start ``[]``: where the episode started on it; path_index ``[]`` int32;
+    n_knots ``[]`` int32: knots of the episode's (truncated) path; steps ``[]`` int32 taken;
+    max_steps ``[]`` int32 time budget; braking ``[]`` bool; rng: key for the next reset.
+    """
+
+    p: Array
+    v: Array
+    a: Array
+    s: Array
+    s_start: Array
+    path_index: Array
+    n_knots: Array
+    steps: Array
+    max_steps: Array
+    braking: Array
+    rng: Array
+
+
+class PathTrackingEnv(Env):
+    """Follow reference paths from a dataset as fast as possible within the joint limits.
+
+    ``limits``: :class:`~mjx_pathtrack.limits.JointLimits` of all ``n`` actuated joints;
+    ``paths``: stacked :class:`~mjx_pathtrack.spline.Path` batch ``[B]`` over the path joints;
+    ``max_dis_between_knots`` [rad]: the dataset's largest knot spacing (observation scale);
+    ``path_joints``: indices of the joints that form the path (default: all);
+    ``home`` ``[n]``: start position of joints outside the path (default 0).
+    """
+
+    def __init__(self, limits: L.JointLimits, paths: S.Path, max_dis_between_knots: float,
+                 config: EnvConfig = EnvConfig(), path_joints=None, home=None):
+        n = limits.n_joints
+        self.limits = limits
+        self.config = config
+        self.paths = paths
+        self.path_joints = np.arange(n) if path_joints is None else np.asarray(path_joints, np.int32)
+        m = len(self.path_joints)
+        if paths.knots.ndim != 3 or paths.knots.shape[-1] != m:
+            raise ValueError(f"paths must be a stacked batch [B, max_knots, {m}] over the {m} path joints, "
+                             f"got knots of shape {paths.knots.shape}")
+        if not np.isfinite(max_dis_between_knots) or max_dis_between_knots <= 0:
+            raise ValueError(f"max_dis_between_knots must be > 0, got {max_dis_between_knots}")
+        if config.deviation_weights is not None and len(config.deviation_weights) != m:
+            raise ValueError(f"deviation_weights has {len(config.deviation_weights)} values for {m} path joints")
+        self.max_dis = float(max_dis_between_knots)
+        self.home = jnp.zeros(n) if home is None else jnp.asarray(home, jnp.float32)
+        self.n_paths = int(paths.knots.shape[0])
+
+    # -- Brax interface ---------------------------------------------------------------------
+
+    @property
+    def observation_size(self) -> int:
+        n, m, N = self.limits.n_joints, len(self.path_joints), self.config.n_next
+        return 3 * n + m * (N + 1) + 2 + N
+
+    @property
+    def action_size(self) -> int:
+        return self.limits.n_joints
+
+    @property
+    def backend(self) -> str:
+        return "kinematic"
+
+    def reset(self, rng: Array) -> State:
+        track = self.initial_state(rng)
+        zero = jnp.zeros(())
+        metrics = {k: zero for k in self.metric_names()}
+        return State(pipeline_state=track, obs=self.observe(track), reward=zero, done=zero,
+                     metrics=metrics, info={})
+
+    def step(self, state: State, action: Array) -> State:
+        track, reward, done, metrics = self.transition(state.pipeline_state, action)
+        return state.replace(pipeline_state=track, obs=self.observe(track), reward=reward,
+                             done=done.astype(jnp.float32), metrics=metrics)
+
+    # -- episode ----------------------------------------------------------------------------
+
+    def path(self, index: Array, n_knots: Array | None = None) -> S.Path:
+        """The dataset path ``index`` (truncated to ``n_knots`` if given)."""
+        path = jax.tree.map(lambda x: x[index], self.paths)
+        return path if n_knots is None else path._replace(n_knots=n_knots)
+
+    def initial_state(self, rng: Array) -> TrackState:
+        """Random path, random sub-path (REFERENCE §3.4), robot at rest on its start point."""
+        cfg = self.config
+        rng, k_path, k_sub = jax.random.split(rng, 3)
+        index = jax.random.randint(k_path, (), 0, self.n_paths)
+        full = self.path(index)
+        total = full.length
+        path, s0 = S.sample_sub_path(full, k_sub, cfg.start_range, cfg.min_fraction, cfg.max_fraction)
+        s0 = jnp.minimum(s0, path.length)
+        p = self.home.at[self.path_joints].set(S.point_at(path, s0))
+        p = jnp.clip(p, self.limits.pos_min, self.limits.pos_max)
+        zero = jnp.zeros_like(p)
+        duration = cfg.duration * (path.length - s0) / jnp.maximum(total, 1e-9)
+        trajectory_length = jnp.round(duration / cfg.dt).astype(jnp.int32) + 1
+        return TrackState(p=p, v=zero, a=zero, s=s0, s_start=s0, path_index=index,
+                          n_knots=path.n_knots, steps=jnp.zeros((), jnp.int32),
+                          max_steps=jnp.maximum(trajectory_length - 1, 1), braking=jnp.zeros((), bool), rng=rng)
+
+    def transition(self, track: TrackState, action: Array):
+        """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``."""
+        cfg, lim = self.config, self.limits
+        path = self.path(track.path_index, track.n_knots)
+        # the safe range of the current state (computed here rather than at the end of the
+        # previous step, so that a reset does not pay for it)
+        a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
+        a_policy = L.action_to_acceleration(action, a_min, a_max)
+        a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
+        a_next = jnp.where(track.braking, a_brake, a_policy)
+        # setpoints at the sub-steps of the step (constant jerk), start point included: [S+1, n]
+        t = cfg.dt * jnp.arange(cfg.substeps + 1) / cfg.substeps
+        q, _, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, t[:, None])
+        p1, v1, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, cfg.dt)
+        executed = q[:, self.path_joints]
+        length, d = self._progress_and_deviation(path, track.s, executed)
+        window = S.knot_window(path, track.s, cfg.n_next)
+        s1 = jnp.minimum(track.s + length, path.length)
+        d_max, d_mean = jnp.max(d), jnp.mean(d)
+        terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
+                                 d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
+        reward = sum(terms.values())
+        steps = track.steps + 1
+        reached_end = s1 >= path.length
+        stopped = track.braking & jnp.all(jnp.abs(v1) < cfg.stop_velocity) & jnp.all(jnp.abs(a_next) < cfg.stop_acceleration)
+        done_stop = stopped if cfg.terminate_on_stop else jnp.zeros((), bool)
+        done_dev = (d_max > cfg.terminate_deviation) if cfg.terminate_deviation is not None else jnp.zeros((), bool)
+        done_time = steps >= track.max_steps
+        done = done_stop | done_dev | done_time
+        # finishing early must not lower the return: the stop reward counts for every remaining step
+        reward = jnp.where(done_stop, reward * (track.max_steps + 1 - steps).astype(jnp.float32), reward)
+        final_dev = R.weighted_deviation(path.knots[path.n_knots - 1], executed[-1], cfg.deviation_weights)
+        success = done & ~done_dev & (final_dev < cfg.success_deviation)
+        braking = track.braking | (reached_end & cfg.brake_at_end)
+        new = track._replace(p=p1, v=v1, a=a_next, s=s1, steps=steps, braking=braking)
+        metrics = {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}, "length": length, "d_max": d_max,
+                   "d_mean": d_mean, "progress": (s1 - track.s_start) / jnp.maximum(path.length - track.s_start, 1e-9),
+                   "reached_end": reached_end.astype(jnp.float32), "success": success.astype(jnp.float32),
+                   "terminated_deviation": (done_dev & ~done_stop).astype(jnp.float32)}
+        return new, reward, done, metrics
+
+    def metric_names(self) -> tuple[str, ...]:
+        terms = ("distance", "max_deviation", "mean_deviation", "action")
+        return ("reward",) + tuple(f"reward/{k}" for k in terms) + ("length", "d_max", "d_mean", "progress", "reached_end",
+                                                      "success", "terminated_deviation")
+
+    def _progress_and_deviation(self, path: S.Path, s0: Array, executed: Array) -> tuple[Array, Array]:
+        """Arc length ``l`` of the executed polyline ``[S+1, m]`` and deviations ``[M]`` at
+        ``M`` equally spaced arc lengths (start excluded) against the reference at ``s0 + offset``."""
+        cfg = self.config
+        seg = jnp.linalg.norm(jnp.diff(executed, axis=0), axis=-1)
+        cum = jnp.concatenate([jnp.zeros(1), jnp.cumsum(seg)])
+        length = cum[-1]
+        offsets = length * jnp.arange(1, cfg.deviation_samples + 1) / cfg.deviation_samples
+        i = jnp.clip(jnp.searchsorted(cum, offsets, side="left") - 1, 0, cfg.substeps - 1)
+        w = jnp.clip((offsets - cum[i]) / jnp.maximum(seg[i], 1e-12), 0.0, 1.0)
+        points = executed[i] + w[:, None] * (executed[i + 1] - executed[i])
+        reference = S.point_at(path, s0 + offsets)
+        return length, R.weighted_deviation(reference, points, cfg.deviation_weights)
+
+    # -- observation ------------------------------------------------------------------------
+
+    def observe(self, track: TrackState) -> Array:
+        """Observation ``[obs_size]`` in [-1, 1] (REFERENCE §2 items 2-8)."""
+        cfg, lim = self.config, self.limits
+        path = self.path(track.path_index, track.n_knots)
+        window = S.knot_window(path, track.s, cfg.n_next)
+        knots_lo, knots_hi = lim.pos_min[self.path_joints], lim.pos_max[self.path_joints]
+        scale = cfg.n_next * self.max_dis
+        obs = jnp.concatenate([
+            normalize_position(track.p, lim.pos_min, lim.pos_max),
+            track.v / lim.vel,
+            track.a / lim.acc,
+            normalize_position(window.knots, knots_lo, knots_hi).reshape(-1),
+            (-1.0 + 2.0 * window.offset / self.max_dis)[None],
+            (-1.0 + 2.0 * window.state_length / scale)[None],
+            -1.0 + 2.0 * window.knot_distances / scale,
+        ])
+        return jnp.clip(obs, -1.0, 1.0)
+
+
+def normalize_position(p: Array, lo: Array, hi: Array) -> Array:
+    """Positions ``[..., n]`` mapped to [-1, 1] over ``[lo, hi]``; continuous joints (infinite
+    limits) are wrapped: ``-1 + 2 ((p + pi) / 2 pi mod 1)``."""
+    finite = jnp.isfinite(lo) & jnp.isfinite(hi)
+    span = jnp.where(finite, hi - lo, 1.0)
+    bounded = -1.0 + 2.0 * (p - jnp.where(finite, lo, 0.0)) / span
+    wrapped = -1.0 + 2.0 * jnp.mod((p + jnp.pi) / (2.0 * jnp.pi), 1.0)
+    return jnp.where(finite, bounded, wrapped)

@@ -1,0 +1,237 @@
+"""Brax PPO training of the path-tracking policy: config, environment wiring, progress, logs,
+checkpoints and resume. ``train.py`` at the repository root is the command-line front end.
+
+Multi-device: Brax PPO shards the environments over every local JAX device (``jax.pmap``);
+multi-host runs call ``jax.distributed.initialize()`` first (``--distributed`` in train.py), after
+which Brax uses the devices of every process. Nothing here is device specific.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import json
+import os
+import pickle
+import tempfile
+import time
+from pathlib import Path as FsPath
+from typing import Any
+
+import jax
+import numpy as np
+
+from mjx_pathtrack import datasets, iiwa
+from mjx_pathtrack import reward as R
+from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
+from mjx_pathtrack.evaluation import make_evaluator, summarize
+from mjx_pathtrack.wrappers import wrap_for_training
+
+#: deviation weights of the papers' iiwa nets (REFERENCE §1.5)
+IIWA_DEVIATION_WEIGHTS = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (saved as ``config.json`` in the run directory).
+
+    The PPO settings are tuned for Brax on a CPU budget (the papers' RLlib settings in
+    REFERENCE §6.1 use 300k-sample batches and lr 5e-5 over days); networks are the papers'
+    separate 256-128 policy and value MLPs with swish activations.
+    """
+
+    robot: str = "iiwa"
+    dataset: str = "random"
+    dataset_root: str | None = None
+    dt: float = 0.1
+    n_next: int = 8
+    alpha: float = 2.0
+    beta: float = 0.9
+    deviation_threshold: float = 0.25
+    terminate_deviation: float = 0.25
+    action_reward: float = 0.4
+    duration: float = 16.0
+    num_envs: int = 256
+    num_timesteps: int = 3_000_000
+    learning_rate: float = 3e-4
+    entropy_cost: float = 1e-3
+    discounting: float = 0.99
+    gae_lambda: float = 0.95
+    clipping_epsilon: float = 0.2
+    unroll_length: int = 20
+    batch_size: int = 256
+    num_minibatches: int = 8
+    num_updates_per_batch: int = 4
+    num_evals: int = 6
+    eval_episodes: int = 128
+    policy_layers: tuple[int, ...] = (256, 128)
+    value_layers: tuple[int, ...] = (256, 128)
+    seed: int = 0
+
+    def env_config(self) -> EnvConfig:
+        weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
+                                  deviation_threshold=self.deviation_threshold, action=self.action_reward)
+        return EnvConfig(dt=self.dt, n_next=self.n_next, duration=self.duration,
+                         terminate_deviation=self.terminate_deviation,
+                         deviation_weights=IIWA_DEVIATION_WEIGHTS if self.robot == "iiwa" else None,
+                         reward=weights)
+
+    @classmethod
+    def from_json(cls, text: str) -> "TrainConfig":
+        data = json.loads(text)
+        for key in ("policy_layers", "value_layers"):
+            if key in data:
+                data[key] = tuple(data[key])
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown config keys: {sorted(unknown)}")
+        return cls(**data)
+
+
+def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
+    """The environment over one dataset split (``train`` or ``test``)."""
+    if config.robot != "iiwa":
+        raise ValueError(f"unknown robot {config.robot!r}; available for training: ['iiwa']")
+    limits = iiwa.joint_limits(config.dt)
+    meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
+    paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
+    return PathTrackingEnv(limits, paths, float(meta["max_dis_between_knots"]), config.env_config())
+
+
+def atomic_write_bytes(path: FsPath, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file and ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+class Progress:
+    """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv``."""
+
+    def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0):
+        self.file = run_dir / "progress.csv"
+        self.total = total_steps
+        self.t0 = time.monotonic()
+        self.first_step: int | None = None
+        self.start_step = start_step
+
+    def __call__(self, step: int, metrics: dict[str, Any]) -> None:
+        step += self.start_step
+        now = time.monotonic()
+        if self.first_step is None:  # the first call comes after compilation
+            self.first_step, self.t0 = step, now
+            rate = float("nan")
+        else:
+            rate = (step - self.first_step) / max(now - self.t0, 1e-9)
+        eta = (self.total - step) / rate if rate == rate and rate > 0 else float("nan")
+        row = {"step": step, "env_steps_per_s": rate, "eta_s": eta,
+               **{k: float(np.asarray(v)) for k, v in metrics.items() if np.ndim(v) == 0}}
+        new = not self.file.exists()
+        with open(self.file, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(row))
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+        ret = row.get("eval/episode_reward", float("nan"))
+        print(f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}",
+              flush=True)
+
+
+def ppo_networks(config: TrainConfig):
+    from brax.training.agents.ppo import networks as ppo_networks_module
+
+    return functools.partial(ppo_networks_module.make_ppo_networks,
+                             policy_hidden_layer_sizes=config.policy_layers,
+                             value_hidden_layer_sizes=config.value_layers)
+
+
+def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True):
+    """Train; returns ``(make_inference_fn, params, report)`` where ``report`` holds the
+    evaluation summaries before and after training on the test split."""
+    from brax.training.agents.ppo import train as ppo
+
+    run_dir = FsPath(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config_file = run_dir / "config.json"
+    if resume and config_file.exists():
+        saved = TrainConfig.from_json(config_file.read_text())
+        if saved != config:
+            raise ValueError(f"--resume: config differs from the saved one in {config_file}")
+    atomic_write_bytes(config_file, (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
+    env, test_env = make_env(config, "train"), make_env(config, "test")
+    checkpoints = run_dir / "checkpoints"
+    latest = latest_checkpoint(checkpoints) if resume else None
+    restore, done_steps = latest if latest else (None, 0)
+    if restore and verbose:
+        print(f"resuming from {restore} ({done_steps:,} of {config.num_timesteps:,} steps done)", flush=True)
+    episode_length = config.env_config().max_episode_steps() + 1
+
+    report: dict[str, Any] = {}
+    eval_key = jax.random.PRNGKey(config.seed + 1)
+
+    evaluators = {}
+
+    def evaluation(make_inference_fn, params) -> dict[str, float]:
+        if "fn" not in evaluators:
+            evaluators["fn"] = make_evaluator(test_env, make_inference_fn, config.eval_episodes)
+        return summarize(evaluators["fn"](params, eval_key))
+
+    def policy_params_fn(step, make_inference_fn, params):
+        if "before" not in report:
+            report["before"] = evaluation(make_inference_fn, params)
+            if verbose:
+                print("evaluation before training:", _fmt(report["before"]), flush=True)
+
+    make_inference_fn, params, _ = ppo.train(
+        environment=env, eval_env=test_env, wrap_env_fn=wrap_for_training,
+        num_timesteps=max(config.num_timesteps - done_steps, 1), episode_length=episode_length, num_envs=config.num_envs,
+        learning_rate=config.learning_rate, entropy_cost=config.entropy_cost, discounting=config.discounting,
+        gae_lambda=config.gae_lambda, clipping_epsilon=config.clipping_epsilon,
+        unroll_length=config.unroll_length, batch_size=config.batch_size, num_minibatches=config.num_minibatches,
+        num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals,
+        num_eval_envs=min(config.eval_episodes, 128), deterministic_eval=True, normalize_observations=True,
+        network_factory=ppo_networks(config), seed=config.seed,
+        progress_fn=Progress(run_dir, config.num_timesteps, done_steps) if verbose else (lambda *a: None),
+        policy_params_fn=policy_params_fn,
+        save_checkpoint_path=str((checkpoints / f"{done_steps:012d}").resolve()),
+        restore_checkpoint_path=str(restore) if restore else None)
+    report["after"] = evaluation(make_inference_fn, params)
+    if verbose:
+        print("evaluation after training: ", _fmt(report["after"]), flush=True)
+    atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
+    atomic_write_bytes(run_dir / "report.json", (json.dumps(report, indent=2) + "\n").encode())
+    return make_inference_fn, params, report
+
+
+#: written last into a Brax PPO checkpoint directory: its presence marks a complete checkpoint
+CHECKPOINT_DONE_FILE = "ppo_network_config.json"
+
+
+def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
+    """The newest *complete* Brax checkpoint and the total env steps it stands for, or None.
+
+    Layout: ``checkpoints/<offset>/<step>/`` -- each (re)start of a run saves under the number of
+    steps done before it (Brax counts from 0 again after a restore). A directory that a kill left
+    half-written (no network config yet) is ignored."""
+    if not checkpoints.is_dir():
+        return None
+    found = [(int(o.name) + int(p.name), p) for o in checkpoints.iterdir() if o.is_dir() and o.name.isdigit()
+             for p in o.iterdir() if p.is_dir() and p.name.isdigit() and (p / CHECKPOINT_DONE_FILE).is_file()]
+    if not found:
+        return None
+    total, path = max(found, key=lambda x: x[0])
+    return path, total
+
+
+def _fmt(summary: dict[str, float]) -> str:
+    return "  ".join(f"{k}={v:.3f}" for k, v in summary.items())

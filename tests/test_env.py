@@ -1,0 +1,160 @@
+"""PathTrackingEnv: shapes, limits along rollouts, progress/deviation, braking, fresh resets."""
+
+import numpy as np
+import pytest
+
+import mjx_pathtrack  # noqa: F401
+import jax
+import jax.numpy as jnp
+
+from mjx_pathtrack import iiwa, limits as L, spline as S
+from mjx_pathtrack.env import EnvConfig, PathTrackingEnv, normalize_position
+from mjx_pathtrack.wrappers import wrap_for_training
+
+DT = 0.1
+
+
+def random_walk_paths(n_paths=6, n_knots=30, seed=0, max_knots=32):
+    rng = np.random.default_rng(seed)
+    paths = []
+    for _ in range(n_paths):
+        k = np.cumsum(rng.normal(0.0, 0.12, (n_knots, 7)), 0) + rng.uniform(-1, 1, 7)
+        paths.append(S.make_path(np.clip(k, -0.9 * iiwa.POS, 0.9 * iiwa.POS), max_knots=max_knots))
+    return S.stack_paths(paths)
+
+
+def line_path(length=1.0, joint=0, n_knots=6):
+    knots = np.zeros((n_knots, 7))
+    knots[:, joint] = np.linspace(0.0, length, n_knots)
+    return S.stack_paths([S.make_path(knots)])
+
+
+@pytest.fixture(scope="module")
+def env():
+    return PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(), 0.5, EnvConfig())
+
+
+def test_observation_layout_matches_reference_size(env):
+    # REFERENCE §2: 3 n + n (N + 1) + 1 + 1 + N = 94 for the iiwa with N = 8
+    assert env.observation_size == 94 and env.action_size == 7
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    assert state.obs.shape == (94,)
+    assert bool(jnp.all(jnp.abs(state.obs) <= 1.0)) and bool(jnp.all(jnp.isfinite(state.obs)))
+    # at rest: velocity and acceleration blocks are zero
+    assert bool(jnp.all(state.obs[7:21] == 0.0))
+
+
+def test_random_rollouts_keep_limits_and_finite_rewards(env):
+    """Batched rollouts with random and extreme actions: the commanded state stays inside all
+    limits at every step and inside every step (analytic extrema), rewards are finite."""
+    wrapped = wrap_for_training(env, episode_length=200)
+    batch, steps = 64, 120
+    lim = env.limits
+    state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(1), batch))
+
+    @jax.jit
+    def run(state, key):
+        def body(state, k):
+            k1, k2 = jax.random.split(k)
+            random = jax.random.uniform(k1, (batch, 7), minval=-1.0, maxval=1.0)
+            extreme = jnp.sign(jax.random.normal(k2, (batch, 7)))
+            action = jnp.where(jnp.arange(batch)[:, None] < batch // 2, random, extreme)
+            before = state.pipeline_state
+            state = wrapped.step(state, action)
+            after = state.pipeline_state
+            fresh = state.done.astype(bool)
+            ext = L.step_extrema(before.p, before.v, before.a, after.a, DT)
+            return state, (ext, after.a, state.reward, fresh)
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))
+
+    state, (ext, acc, rewards, fresh) = run(state, jax.random.PRNGKey(2))
+    keep = ~fresh[..., None]  # steps that ended an episode were replaced by a reset
+    tol = 1e-6
+    pos_max, pos_min = np.asarray(lim.pos_max), np.asarray(lim.pos_min)
+    assert np.all(np.where(keep, ext.p_max <= pos_max + tol * np.abs(pos_max), True))
+    assert np.all(np.where(keep, ext.p_min >= pos_min - tol * np.abs(pos_min), True))
+    assert np.all(np.where(keep, np.maximum(ext.v_max, -ext.v_min) <= np.asarray(lim.vel) * (1 + tol), True))
+    assert np.all(np.abs(acc) <= np.asarray(lim.acc) * (1 + tol))
+    assert np.all(np.where(keep, ext.jerk_abs <= np.asarray(lim.jerk) * (1 + 1e-5), True))
+    assert np.all(np.isfinite(rewards))
+    assert int(fresh.sum()) > 0  # episodes did end (and were reset) during the rollout
+
+
+def test_following_a_straight_path_has_tiny_deviation_and_progress():
+    cfg = EnvConfig(start_range=(0.0, 0.0), min_fraction=1.0, terminate_deviation=None)
+    env = PathTrackingEnv(iiwa.joint_limits(DT), line_path(1.0), 0.2, cfg)
+    state = env.reset(jax.random.PRNGKey(0))
+    step = jax.jit(env.step)
+    action = jnp.zeros(7).at[0].set(1.0)  # joint 0 as fast as allowed, others held (mid-range = 0)
+    d_max, total = [], 0.0
+    while not bool(state.pipeline_state.braking):
+        state = step(state, action)
+        if not bool(state.metrics["reached_end"]):  # (beyond the end the reference is the end knot)
+            d_max.append(float(state.metrics["d_max"]))
+            total += float(state.metrics["length"])
+            assert float(state.pipeline_state.s) == pytest.approx(total, abs=1e-5)
+    assert len(d_max) >= 3 and max(d_max) < 1e-4
+    # overshooting the end is measured against the end knot
+    state = step(state, action)
+    assert float(state.metrics["d_max"]) == pytest.approx(float(state.pipeline_state.p[0]) - 1.0, abs=1e-4)
+
+
+def test_braking_at_end_stops_and_counts_the_remaining_steps():
+    cfg = EnvConfig(start_range=(0.0, 0.0), min_fraction=1.0, terminate_deviation=None)
+    env = PathTrackingEnv(iiwa.joint_limits(DT), line_path(0.6), 0.2, cfg)
+    state = env.reset(jax.random.PRNGKey(0))
+    max_steps = int(state.pipeline_state.max_steps)
+    step = jax.jit(env.step)
+    action = jnp.zeros(7).at[0].set(1.0)
+    for i in range(max_steps):
+        state = step(state, action)
+        if state.done:
+            break
+    track = state.pipeline_state
+    assert bool(state.done) and i + 1 < max_steps  # stopped before the time budget ran out
+    assert float(jnp.max(jnp.abs(track.v))) < 0.01 and float(jnp.max(jnp.abs(track.a))) < 0.01
+    # success: stopped with the last point within 0.05 rad of the end knot
+    final_dev = abs(float(track.p[0]) - 0.6)
+    assert float(state.metrics["success"]) == float(final_dev < 0.05)
+    # the stop reward is the per-step reward times the remaining steps
+    per_step = sum(float(v) for k, v in state.metrics.items() if k.startswith("reward/"))
+    assert float(state.reward) == pytest.approx(per_step * (max_steps + 1 - (i + 1)), rel=1e-5)
+    # full speed to the end overshoots it by the braking distance, which is then measured
+    assert 0.6 < float(track.p[0]) < 0.6 + 0.5 * float(env.limits.vel[0]) ** 2 / float(env.limits.acc[0]) + 0.2
+
+
+def test_fresh_resets_draw_new_episodes_and_runs_are_reproducible(env):
+    wrapped = wrap_for_training(env, episode_length=3)
+    batch = 16
+
+    def run(seed):
+        state = wrapped.reset(jax.random.split(jax.random.PRNGKey(seed), batch))
+        starts = [np.asarray(state.pipeline_state.s)]
+        step = jax.jit(wrapped.step)
+        for _ in range(6):
+            state = step(state, jnp.zeros((batch, 7)))
+            starts.append(np.asarray(state.pipeline_state.s))
+        return np.stack(starts), np.asarray(state.obs)
+
+    s1, obs1 = run(3)
+    s2, obs2 = run(3)
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(obs1, obs2)
+    # episode length 3: slots were reset at steps 3 and 6 with newly drawn start positions
+    assert not np.allclose(s1[3], s1[0]) and not np.allclose(s1[6], s1[3])
+
+
+def test_normalize_position_wraps_continuous_joints():
+    lo = jnp.array([-1.0, -jnp.inf])
+    hi = jnp.array([1.0, jnp.inf])
+    out = normalize_position(jnp.array([0.5, jnp.pi / 2]), lo, hi)
+    np.testing.assert_allclose(np.asarray(out), [0.5, 0.5], atol=1e-6)
+
+
+def test_bad_construction_errors():
+    paths = random_walk_paths(n_paths=2)
+    with pytest.raises(ValueError, match="path joints"):
+        PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, path_joints=[0, 1, 2])
+    with pytest.raises(ValueError, match="max_dis_between_knots"):
+        PathTrackingEnv(iiwa.joint_limits(DT), paths, float("nan"))

@@ -1,0 +1,58 @@
+"""Train a path-tracking policy with Brax PPO on batched environments.
+
+    python train.py                      # iiwa, random paths, CPU-sized default run
+    python train.py --help               # all flags
+    python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
+
+Multi-host: start the same command on every host with --distributed (and the usual
+JAX_COORDINATOR_ADDRESS / process count and id environment, see README); Brax PPO then
+shards the environments over all devices of all processes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+
+import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
+
+
+def parse_args(argv=None):
+    from mjx_pathtrack.training import TrainConfig
+
+    defaults = TrainConfig()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="runs/iiwa_random", help="run directory (config, logs, checkpoints)")
+    parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
+    parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first")
+    for field in dataclasses.fields(TrainConfig):
+        value = getattr(defaults, field.name)
+        flag = "--" + field.name.replace("_", "-")
+        if isinstance(value, tuple):
+            parser.add_argument(flag, type=int, nargs="+", default=list(value))
+        elif value is None:
+            parser.add_argument(flag, default=None)
+        else:
+            parser.add_argument(flag, type=type(value), default=value)
+    args = parser.parse_args(argv)
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
+    values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
+    return args, TrainConfig(**values)
+
+
+def main(argv=None) -> int:
+    args, config = parse_args(argv)
+    import jax
+
+    if args.distributed:
+        jax.distributed.initialize()
+    from mjx_pathtrack.training import train
+
+    print(f"devices: {jax.devices()}", flush=True)
+    train(config, args.out, resume=args.resume)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
