@@ -45,7 +45,10 @@ class EnvConfig:
     start_range, min_fraction, max_fraction: random sub-path selection (REFERENCE §3.4);
     terminate_deviation [rad] (None: off); brake_at_end / terminate_on_stop: braking at the end
     and termination once |v|, |a| < stop_velocity / stop_acceleration; success_deviation [rad]:
-    final deviation of a successful episode; deviation_weights: per path joint (None: plain L2).
+    final deviation of a successful episode; deviation_weights: per path joint (None: plain L2);
+    adjustable: each environment carries its own copy of its path so that the reference ahead
+    can be replaced during the episode (:meth:`PathTrackingEnv.replace_reference`); off for
+    training, where the state only holds the dataset index (much less memory per environment).
     """
 
     dt: float = 0.1
@@ -64,6 +67,7 @@ class EnvConfig:
     success_deviation: float = 0.05
     deviation_weights: tuple[float, ...] | None = None
     reward: R.RewardWeights = R.RewardWeights()
+    adjustable: bool = False
 
     def max_episode_steps(self) -> int:
         """Upper bound of the steps of any episode (the whole path at full duration)."""
@@ -76,7 +80,9 @@ class TrackState(NamedTuple):
     p, v, a ``[n]``: commanded joint state at the decision instant; s ``[]``: arc position on the
     reference; s_start ``[]``: where the episode started on it; path_index ``[]`` int32;
     n_knots ``[]`` int32: knots of the episode's (truncated) path; steps ``[]`` int32 taken;
-    max_steps ``[]`` int32 time budget; braking ``[]`` bool; rng: key for the next reset.
+    max_steps ``[]`` int32 time budget; braking ``[]`` bool; rng: key for the next reset;
+    path: the episode's own :class:`~mjx_pathtrack.spline.Path` if the config is ``adjustable``
+    (else None: the path is the dataset's ``path_index`` truncated to ``n_knots``).
     """
 
     p: Array
@@ -90,6 +96,7 @@ class TrackState(NamedTuple):
     max_steps: Array
     braking: Array
     rng: Array
+    path: S.Path | None = None
 
 
 class PathTrackingEnv(Env):
@@ -171,12 +178,34 @@ class PathTrackingEnv(Env):
         trajectory_length = jnp.round(duration / cfg.dt).astype(jnp.int32) + 1
         return TrackState(p=p, v=zero, a=zero, s=s0, s_start=s0, path_index=index,
                           n_knots=path.n_knots, steps=jnp.zeros((), jnp.int32),
-                          max_steps=jnp.maximum(trajectory_length - 1, 1), braking=jnp.zeros((), bool), rng=rng)
+                          max_steps=jnp.maximum(trajectory_length - 1, 1), braking=jnp.zeros((), bool), rng=rng,
+                          path=path if cfg.adjustable else None)
+
+    def episode_path(self, track: TrackState) -> S.Path:
+        """The reference of the episode ``track`` is in."""
+        return track.path if track.path is not None else self.path(track.path_index, track.n_knots)
+
+    def replace_reference(self, state: State, new_knots: Array, n_new: Array | None = None) -> State:
+        """Replace the reference ahead of the current position by a spline through ``new_knots
+        [m, n_path]`` (paper 000 Fig. 4; :func:`~mjx_pathtrack.spline.replace_ahead`): the robot
+        continues from where it is, the observation shows the new knots at once. The time budget
+        is rescaled to the new remaining length; braking stops if the path now goes on.
+        Needs ``EnvConfig(adjustable=True)``. Jittable; vmap it for a batch."""
+        track = state.pipeline_state
+        if track.path is None:
+            raise ValueError("replace_reference needs EnvConfig(adjustable=True)")
+        old = track.path
+        path = S.replace_ahead(old, track.s, new_knots, n_new)
+        steps_per_rad = track.max_steps / jnp.maximum(old.length - track.s_start, 1e-9)
+        remaining = jnp.ceil((path.length - track.s) * steps_per_rad).astype(jnp.int32)
+        track = track._replace(path=path, n_knots=path.n_knots, max_steps=track.steps + jnp.maximum(remaining, 1),
+                               braking=track.braking & (track.s >= path.length))
+        return state.replace(pipeline_state=track, obs=self.observe(track))
 
     def transition(self, track: TrackState, action: Array):
         """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``."""
         cfg, lim = self.config, self.limits
-        path = self.path(track.path_index, track.n_knots)
+        path = self.episode_path(track)
         # the safe range of the current state (computed here rather than at the end of the
         # previous step, so that a reset does not pay for it)
         a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
@@ -238,7 +267,7 @@ class PathTrackingEnv(Env):
     def observe(self, track: TrackState) -> Array:
         """Observation ``[obs_size]`` in [-1, 1] (REFERENCE §2 items 2-8)."""
         cfg, lim = self.config, self.limits
-        path = self.path(track.path_index, track.n_knots)
+        path = self.episode_path(track)
         window = S.knot_window(path, track.s, cfg.n_next)
         knots_lo, knots_hi = lim.pos_min[self.path_joints], lim.pos_max[self.path_joints]
         scale = cfg.n_next * self.max_dis

@@ -118,8 +118,9 @@ def atomic_write_bytes(path: FsPath, data: bytes) -> None:
 class Progress:
     """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv``."""
 
-    def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0):
+    def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0, echo: bool = True):
         self.file = run_dir / "progress.csv"
+        self.echo = echo
         self.total = total_steps
         self.t0 = time.monotonic()
         self.first_step: int | None = None
@@ -143,8 +144,9 @@ class Progress:
                 writer.writeheader()
             writer.writerow(row)
         ret = row.get("eval/episode_reward", float("nan"))
-        print(f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}",
-              flush=True)
+        if self.echo:
+            print(f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}",
+                  flush=True)
 
 
 def ppo_networks(config: TrainConfig):
@@ -201,7 +203,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
         num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals,
         num_eval_envs=min(config.eval_episodes, 128), deterministic_eval=True, normalize_observations=True,
         network_factory=ppo_networks(config), seed=config.seed,
-        progress_fn=Progress(run_dir, config.num_timesteps, done_steps) if verbose else (lambda *a: None),
+        progress_fn=Progress(run_dir, config.num_timesteps, done_steps, echo=verbose),
         policy_params_fn=policy_params_fn,
         save_checkpoint_path=str((checkpoints / f"{done_steps:012d}").resolve()),
         restore_checkpoint_path=str(restore) if restore else None)
@@ -209,7 +211,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
     if verbose:
         print("evaluation after training: ", _fmt(report["after"]), flush=True)
     atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
-    atomic_write_bytes(run_dir / "report.json", (json.dumps(report, indent=2) + "\n").encode())
+    atomic_write_bytes(run_dir / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     return make_inference_fn, params, report
 
 
@@ -231,6 +233,15 @@ def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
         return None
     total, path = max(found, key=lambda x: x[0])
     return path, total
+
+
+def json_safe(value):
+    """``value`` with NaN/inf floats replaced by None (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def _fmt(summary: dict[str, float]) -> str:

@@ -158,3 +158,46 @@ def test_bad_construction_errors():
         PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, path_joints=[0, 1, 2])
     with pytest.raises(ValueError, match="max_dis_between_knots"):
         PathTrackingEnv(iiwa.joint_limits(DT), paths, float("nan"))
+
+
+def test_path_replaced_mid_episode_continues_within_limits():
+    """Paper Fig. 4: the reference ahead changes during motion; the robot continues from where it
+    is, sees the new knots at once and keeps every limit (checked inside each step)."""
+    cfg = EnvConfig(adjustable=True, terminate_deviation=None, start_range=(0.0, 0.2))
+    env = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(n_paths=3), 0.5, cfg)
+    batch = 8
+    state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(4), batch))
+    step = jax.jit(jax.vmap(env.step))
+    lim = env.limits
+    rng = np.random.default_rng(0)
+    worst = 0.0
+
+    def run(state, n):
+        nonlocal worst
+        for _ in range(n):
+            action = jnp.asarray(rng.uniform(-1, 1, (batch, 7)), jnp.float32)
+            before = state.pipeline_state
+            state = step(state, action)
+            after = state.pipeline_state
+            ext = L.step_extrema(before.p, before.v, before.a, after.a, DT)
+            over = max(float(jnp.max(ext.p_max - lim.pos_max)), float(jnp.max(lim.pos_min - ext.p_min)))
+            vel = float(jnp.max(jnp.maximum(ext.v_max, -ext.v_min) / lim.vel))
+            worst = max(worst, over, vel - 1.0, float(jnp.max(ext.jerk_abs / lim.jerk)) - 1.0)
+            assert bool(jnp.all(jnp.isfinite(state.obs)))
+        return state
+
+    state = run(state, 10)
+    s_before = np.asarray(state.pipeline_state.s)
+    detour = np.clip(np.asarray(state.pipeline_state.p)[:, None, :] + np.linspace(0.1, 1.0, 10)[None, :, None]
+                     * np.array([0.5, -0.3, 0.4, 0.2, -0.5, 0.3, 0.1]), -0.9 * iiwa.POS, 0.9 * iiwa.POS)
+    new = jax.jit(jax.vmap(env.replace_reference))(state, jnp.asarray(detour, jnp.float32))
+    np.testing.assert_array_equal(np.asarray(new.pipeline_state.s), s_before)
+    # the next knot shown is the first new knot (the knot at s is the cut point q(s))
+    first_shown = np.asarray(new.obs)[:, 21 + 7:21 + 14]
+    expected = np.asarray(normalize_position(jnp.asarray(detour[:, 0]), lim.pos_min, lim.pos_max))
+    np.testing.assert_allclose(first_shown, expected, atol=1e-5)
+    run(new, 30)
+    assert worst <= 1e-6
+    with pytest.raises(ValueError, match="adjustable"):
+        plain = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(n_paths=1), 0.5)
+        plain.replace_reference(plain.reset(jax.random.PRNGKey(0)), jnp.zeros((3, 7)))

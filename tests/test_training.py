@@ -1,0 +1,84 @@
+"""train.py / training.py on tiny runs: outputs, determinism, resume, two host devices."""
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mjx_pathtrack  # noqa: F401
+import jax
+
+from mjx_pathtrack.training import TrainConfig, json_safe, latest_checkpoint, train
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = dict(num_envs=8, num_timesteps=640, unroll_length=5, batch_size=8, num_minibatches=2,
+            num_updates_per_batch=1, num_evals=2, eval_episodes=4, policy_layers=(16,), value_layers=(16,),
+            duration=4.0)
+
+
+def tiny_args(out):
+    args = ["--out", str(out)]
+    for key, value in TINY.items():
+        flag = "--" + key.replace("_", "-")
+        args += [flag, *map(str, value)] if isinstance(value, tuple) else [flag, str(value)]
+    return args
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    config = TrainConfig(**TINY)
+    _, params, report = train(config, out, verbose=False)
+    return out, config, params, report
+
+
+def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
+    out, config, params, report = tiny_run
+    assert TrainConfig.from_json((out / "config.json").read_text()) == config
+    assert set(report) == {"before", "after"}
+    for summary in report.values():
+        assert set(summary) >= {"return", "end_reached", "mean_deviation", "stop_time_s"}
+        assert np.isfinite(summary["return"])
+    assert json.loads((out / "report.json").read_text()) == json_safe(report)
+    latest = latest_checkpoint(out / "checkpoints")
+    assert latest is not None and latest[1] > 0
+    saved = pickle.loads((out / "params.pkl").read_bytes())
+    np.testing.assert_array_equal(jax.tree.leaves(saved)[0], np.asarray(jax.tree.leaves(params)[0]))
+
+
+def test_same_seed_same_parameters(tiny_run, tmp_path):
+    _, config, params, _ = tiny_run
+    _, again, _ = train(config, tmp_path, verbose=False)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_resume_continues_from_the_last_checkpoint(tiny_run, tmp_path):
+    out, config, _, _ = tiny_run
+    # a copy of the finished run with a larger budget resumes from its last checkpoint
+    run = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(out), str(run)], check=True)
+    _, done = latest_checkpoint(run / "checkpoints")
+    bigger = TrainConfig(**{**TINY, "num_timesteps": 2 * done})
+    (run / "config.json").write_text(json.dumps({**json.loads((run / "config.json").read_text()),
+                                                 "num_timesteps": 2 * done}))
+    train(bigger, run, resume=True, verbose=False)
+    _, total = latest_checkpoint(run / "checkpoints")
+    assert total > done
+    with pytest.raises(ValueError, match="differs"):
+        train(TrainConfig(**{**TINY, "seed": 5}), run, resume=True, verbose=False)
+
+
+def test_train_cli_on_two_forced_host_devices(tmp_path):
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    result = subprocess.run([sys.executable, "train.py", *tiny_args(tmp_path / "run")], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "CpuDevice(id=1)" in result.stdout  # both devices visible to Brax's pmap
+    assert "evaluation after training" in result.stdout
+    assert (tmp_path / "run" / "params.pkl").is_file()
