@@ -45,7 +45,6 @@ def add_plate_and_ball(spec: mujoco.MjSpec, link: str = "iiwa_link_7") -> None:
     plate.mass = PLATE_MASS
     plate.inertia = PLATE_MASS / 3.0 * np.array([half[1] ** 2 + half[2] ** 2, half[0] ** 2 + half[2] ** 2,
                                                  half[0] ** 2 + half[1] ** 2])
-    plate.gravcomp = 1.0
     plate.add_geom(name="plate", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half), contype=_CONTACT_BIT,
                    conaffinity=_CONTACT_BIT, condim=3, friction=[1.0, 0.005, 0.0001], rgba=[0.8, 0.8, 0.8, 1])
     plate.add_site(name="plate", pos=[0.0, 0.0, half[2]], size=[0.005, 0, 0])
