@@ -8,6 +8,8 @@
   Only ball-plate contacts exist (``contype``/``conaffinity`` bit 2).
 * Sensor ``ball_in_plate`` (``framepos`` of site ``ball`` in site ``plate``): ball centre in the
   plate frame [m]; :func:`ball_in_plate_frame` computes the same from ``site_xpos``/``site_xmat``.
+* :func:`sample_start_xy` draws the start position on the plate; :func:`ball_pose_on_plate`
+  turns it into the ball's free-joint ``qpos``.
 * :func:`randomize_ball` draws radius (20-36 mm) and mass (2-203 g) per episode as a new
   ``mjx.Model`` (pure JAX); :func:`randomize_balls` does it for a batch of keys and returns the
   ``in_axes`` tree for ``jax.vmap(mjx.step, in_axes=(axes, 0))``.
@@ -69,6 +71,12 @@ def ball_pose_on_plate(plate_pos: Array, plate_mat: Array, xy: Array, radius: Ar
     pos = plate_pos + xp.einsum("...ij,...j->...i", plate_mat.reshape(plate_mat.shape[:-2] + (3, 3)), local)
     quat = xp.broadcast_to(xp.asarray([1.0, 0.0, 0.0, 0.0]), pos.shape[:-1] + (4,))
     return xp.concatenate([pos, quat], axis=-1)
+
+
+def sample_start_xy(key: Array, shape: tuple[int, ...] = ()) -> Array:
+    """Random ball start position on the plate ``[*shape, 2]`` [m], uniform in
+    ``±START_RANGE`` (the papers' ±0.0797 x ±0.0458 m). Pure JAX."""
+    return jax.random.uniform(key, shape + (2,), minval=-jnp.asarray(START_RANGE), maxval=jnp.asarray(START_RANGE))
 
 
 def ball_on_plate_qpos(model: mujoco.MjModel, qpos: np.ndarray, xy=(0.0, 0.0)) -> np.ndarray:

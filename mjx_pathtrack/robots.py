@@ -66,13 +66,14 @@ HUMANOIDS_EXTRA = 'armar (CC BY-NC 4.0) is not installed: install the extra "hum
 
 @dataclasses.dataclass(frozen=True)
 class _Spec:
-    """Static description of a registry entry."""
+    """Static description of a registry entry. ``armature`` [kg m^2 or kg]: added joint inertia,
+    standing in for the reflected rotor inertia of geared joints (not in the URDFs); it keeps the
+    lightest joints (e.g. the iiwa's wrist) from dominating the servo stability."""
 
     urdf: Callable[[], Path]
     n_joints: int
     acc: Callable[[str], float]  # joint name -> acceleration limit [rad/s^2 or m/s^2]
     target_links: tuple[str, ...]
-    fixed_joints: Callable[[list], frozenset] = lambda joints: frozenset()
     path_joint: Callable[[str], bool] = lambda name: True
     floating: bool = False
     ball: bool = False

@@ -105,6 +105,13 @@ def test_ball_on_level_and_tilted_plate_mjx(robot):
     assert np.abs(tilted[off[0], 1]) > half[1] and np.abs(tilted[off[0], 0]) < 0.01
 
 
+def test_sample_start_xy():
+    xy = np.asarray(B.sample_start_xy(jax.random.PRNGKey(0), (4000,)))
+    assert xy.shape == (4000, 2)
+    np.testing.assert_allclose(np.abs(xy).max(axis=0), B.START_RANGE, rtol=2e-3)
+    assert np.all(np.abs(xy) <= np.asarray(B.START_RANGE))
+
+
 def test_ball_pose_on_plate_numpy_and_jax_agree():
     pos, mat = np.array([0.1, 0.2, 1.0]), np.eye(3)[[1, 0, 2]] * np.array([1, -1, 1])[:, None]
     a = B.ball_pose_on_plate(pos, mat, np.array([0.01, 0.02]), np.asarray(0.03))
