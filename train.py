@@ -4,8 +4,8 @@
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
 
-Multi-host: start the same command on every host with --distributed (and the usual
-JAX_COORDINATOR_ADDRESS / process count and id environment, see README); Brax PPO then
+Multi-host: start the same command on every host with --distributed --coordinator host0:1234
+--num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
 shards the environments over all devices of all processes.
 """
 
@@ -25,7 +25,12 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="runs/iiwa_random", help="run directory (config, logs, checkpoints)")
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
-    parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first")
+    parser.add_argument("--distributed", action="store_true",
+                        help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
+                             "or the three flags below)")
+    parser.add_argument("--coordinator", default=None, help="host:port of process 0 (or JAX_COORDINATOR_ADDRESS)")
+    parser.add_argument("--num-processes", type=int, default=None)
+    parser.add_argument("--process-id", type=int, default=None)
     for field in dataclasses.fields(TrainConfig):
         value = getattr(defaults, field.name)
         flag = "--" + field.name.replace("_", "-")
@@ -46,7 +51,7 @@ def main(argv=None) -> int:
     import jax
 
     if args.distributed:
-        jax.distributed.initialize()
+        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     from mjx_pathtrack.training import train
 
     print(f"devices: {jax.devices()}", flush=True)

@@ -61,25 +61,34 @@ class DatasetError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------
-# Robots (a small lookup that robots.py can replace)
+# Robots (the registry of mjx_pathtrack.robots)
 # ---------------------------------------------------------------------------------------------
 
 
-def _iiwa() -> tuple[JointLimits, tuple[str, ...]]:
-    from mjx_pathtrack import iiwa
-
-    return iiwa.joint_limits(dt=0.1), iiwa.JOINT_NAMES
-
-
-#: robot name -> () -> (JointLimits, joint names). Only position limits are used here.
-ROBOTS: dict[str, Callable[[], tuple[JointLimits, tuple[str, ...]]]] = {"iiwa": _iiwa}
-
-
 def robot_limits(robot: str) -> tuple[JointLimits, tuple[str, ...]]:
-    """``(JointLimits, joint_names)`` of a known robot; ``DatasetError`` for an unknown one."""
-    if robot not in ROBOTS:
-        raise DatasetError(f"unknown robot {robot!r}; known: {', '.join(sorted(ROBOTS))}")
-    return ROBOTS[robot]()
+    """``(JointLimits, joint_names)`` of the *path joints* of a registry robot
+    (:mod:`mjx_pathtrack.robots`); ``DatasetError`` for an unknown one. Only position limits
+    are used here."""
+    from mjx_pathtrack import robots
+
+    if robot not in robots.known_robots():
+        raise DatasetError(f"unknown robot {robot!r}; known: {', '.join(robots.known_robots())}")
+    try:
+        loaded = robots.load_robot(robot)
+    except ImportError as e:
+        raise DatasetError(str(e)) from e
+    mask = np.asarray(loaded.path_mask, bool)
+    lim = loaded.limits
+    pick = lambda x: np.asarray(x)[mask]  # noqa: E731
+    names = tuple(n for n, m in zip(loaded.joint_names, mask) if m)
+    return JointLimits(pick(lim.pos_min), pick(lim.pos_max), pick(lim.vel), pick(lim.acc), pick(lim.jerk),
+                       names=names), names
+
+
+def known_robots() -> tuple[str, ...]:
+    from mjx_pathtrack import robots
+
+    return robots.known_robots()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -377,13 +386,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_stats.add_argument("--root", default=None, help=f"dataset root (default {DEFAULT_ROOT})")
     p_imp = sub.add_parser("import", help="validate user paths (.npz/.json/.csv) and store them")
     p_imp.add_argument("file")
-    p_imp.add_argument("--robot", required=True, choices=sorted(ROBOTS))
+    p_imp.add_argument("--robot", required=True, choices=known_robots())
     p_imp.add_argument("--kind", required=True, help="dataset name, e.g. my_paths")
     p_imp.add_argument("--split", default="test", choices=SPLITS)
     p_imp.add_argument("--root", default=None)
     p_imp.add_argument("--overwrite", action="store_true")
     p_gen = sub.add_parser("generate", help="generate a dataset (random safe motions, curvature resampled)")
-    p_gen.add_argument("--robot", default="iiwa", choices=sorted(ROBOTS))
+    p_gen.add_argument("--robot", default="iiwa", choices=known_robots())
     p_gen.add_argument("--kind", default="random")
     p_gen.add_argument("--num-train", type=int, default=200)
     p_gen.add_argument("--num-test", type=int, default=200)

@@ -4,9 +4,10 @@ One step, per environment (``jax.vmap`` over the batch; DESIGN.md "Data flow of 
 
 1. the action in [-1, 1]^n is mapped into the safe acceleration range of the current state
    or, once the path end was reached, replaced by the fastest safe braking acceleration;
-2. the acceleration goes linearly to the new value over ``dt`` (constant jerk); the setpoints
-   at ``substeps`` instants of the step form the executed motion (kinematic executor: the robot
-   follows its setpoints exactly, as for the papers' no-feedback tasks);
+2. the acceleration goes linearly to the new value over ``dt`` (constant jerk); the executor
+   (:mod:`~mjx_pathtrack.executors`) turns these setpoints into the executed motion at
+   ``substeps`` instants: the kinematic one follows them exactly (the papers' no-feedback
+   tasks), the MJX one measures servo-controlled physics;
 3. the arc length ``l`` of the executed path-joint motion advances the position ``s`` on the
    reference (no projection); the deviation ``d`` compares executed points with the reference
    at equal arc length;
@@ -21,7 +22,7 @@ auto-reset restores it; use :func:`mjx_pathtrack.wrappers.wrap_for_training`, wh
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +32,7 @@ from brax.envs.base import Env, State
 from mjx_pathtrack import limits as L
 from mjx_pathtrack import reward as R
 from mjx_pathtrack import spline as S
+from mjx_pathtrack.executors import KinematicExecutor
 
 Array = jax.Array
 
@@ -82,7 +84,8 @@ class TrackState(NamedTuple):
     n_knots ``[]`` int32: knots of the episode's (truncated) path; steps ``[]`` int32 taken;
     max_steps ``[]`` int32 time budget; braking ``[]`` bool; rng: key for the next reset;
     path: the episode's own :class:`~mjx_pathtrack.spline.Path` if the config is ``adjustable``
-    (else None: the path is the dataset's ``path_index`` truncated to ``n_knots``).
+    (else None: the path is the dataset's ``path_index`` truncated to ``n_knots``);
+    executor: the executor's state (None for the kinematic one, ``mjx.Data`` for MJX).
     """
 
     p: Array
@@ -97,6 +100,7 @@ class TrackState(NamedTuple):
     braking: Array
     rng: Array
     path: S.Path | None = None
+    executor: Any = None
 
 
 class PathTrackingEnv(Env):
@@ -106,11 +110,13 @@ class PathTrackingEnv(Env):
     ``paths``: stacked :class:`~mjx_pathtrack.spline.Path` batch ``[B]`` over the path joints;
     ``max_dis_between_knots`` [rad]: the dataset's largest knot spacing (observation scale);
     ``path_joints``: indices of the joints that form the path (default: all);
-    ``home`` ``[n]``: start position of joints outside the path (default 0).
+    ``home`` ``[n]``: start position of joints outside the path (default 0);
+    ``executor``: :mod:`~mjx_pathtrack.executors` object (default: kinematic with
+    ``config.substeps``), its sub-steps must match ``config.substeps``.
     """
 
     def __init__(self, limits: L.JointLimits, paths: S.Path, max_dis_between_knots: float,
-                 config: EnvConfig = EnvConfig(), path_joints=None, home=None):
+                 config: EnvConfig = EnvConfig(), path_joints=None, home=None, executor=None):
         n = limits.n_joints
         self.limits = limits
         self.config = config
@@ -127,6 +133,10 @@ class PathTrackingEnv(Env):
         self.max_dis = float(max_dis_between_knots)
         self.home = jnp.zeros(n) if home is None else jnp.asarray(home, jnp.float32)
         self.n_paths = int(paths.knots.shape[0])
+        self.executor = KinematicExecutor(config.substeps) if executor is None else executor
+        if self.executor.substeps != config.substeps:
+            raise ValueError(f"executor has {self.executor.substeps} sub-steps per decision step, "
+                             f"config.substeps is {config.substeps}")
 
     # -- Brax interface ---------------------------------------------------------------------
 
@@ -141,7 +151,7 @@ class PathTrackingEnv(Env):
 
     @property
     def backend(self) -> str:
-        return "kinematic"
+        return self.executor.name
 
     def reset(self, rng: Array) -> State:
         track = self.initial_state(rng)
@@ -179,7 +189,7 @@ class PathTrackingEnv(Env):
         return TrackState(p=p, v=zero, a=zero, s=s0, s_start=s0, path_index=index,
                           n_knots=path.n_knots, steps=jnp.zeros((), jnp.int32),
                           max_steps=jnp.maximum(trajectory_length - 1, 1), braking=jnp.zeros((), bool), rng=rng,
-                          path=path if cfg.adjustable else None)
+                          path=path if cfg.adjustable else None, executor=self.executor.init(p))
 
     def episode_path(self, track: TrackState) -> S.Path:
         """The reference of the episode ``track`` is in."""
@@ -212,9 +222,8 @@ class PathTrackingEnv(Env):
         a_policy = L.action_to_acceleration(action, a_min, a_max)
         a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
         a_next = jnp.where(track.braking, a_brake, a_policy)
-        # setpoints at the sub-steps of the step (constant jerk), start point included: [S+1, n]
-        t = cfg.dt * jnp.arange(cfg.substeps + 1) / cfg.substeps
-        q, _, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, t[:, None])
+        # executed positions at the sub-steps of the step, start point included: [S+1, n]
+        exec_state, q, _ = self.executor.execute(track.executor, track.p, track.v, track.a, a_next, cfg.dt)
         p1, v1, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, cfg.dt)
         executed = q[:, self.path_joints]
         length, d = self._progress_and_deviation(path, track.s, executed)
@@ -236,7 +245,7 @@ class PathTrackingEnv(Env):
         final_dev = R.weighted_deviation(path.knots[path.n_knots - 1], executed[-1], cfg.deviation_weights)
         success = done & ~done_dev & (final_dev < cfg.success_deviation)
         braking = track.braking | (reached_end & cfg.brake_at_end)
-        new = track._replace(p=p1, v=v1, a=a_next, s=s1, steps=steps, braking=braking)
+        new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
         metrics = {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}, "length": length, "d_max": d_max,
                    "d_mean": d_mean, "progress": (s1 - track.s_start) / jnp.maximum(path.length - track.s_start, 1e-9),
                    "reached_end": reached_end.astype(jnp.float32), "success": success.astype(jnp.float32),

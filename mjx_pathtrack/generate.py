@@ -19,7 +19,7 @@ from mjx_pathtrack import limits as L
 from mjx_pathtrack import spline
 
 Array = jax.Array
-#: ``in_collision(q [B, n]) -> bool [B]``
+#: ``in_collision(q [..., n]) -> bool [...]`` (self-collision of joint configurations)
 CollisionFn = Callable[[np.ndarray], np.ndarray]
 
 
@@ -48,11 +48,13 @@ def random_motions(limits: L.JointLimits, key: Array, n: int, steps: int, dt: fl
 
 
 def random_paths(limits: L.JointLimits, n_paths: int, seed: int, steps: int = 80, dt: float = 0.1,
-                 substeps: int = 24, in_collision: CollisionFn | None = None,
+                 substeps: int = 24, in_collision: CollisionFn | None = None, path_joints=None,
                  resampling_distance: float = 0.1, curvature_distance: float = 0.3,
                  max_attempts: int = 20) -> list[np.ndarray]:
-    """``n_paths`` knot arrays ``[K_i, joints]`` (deterministic for ``seed``).
+    """``n_paths`` knot arrays ``[K_i, path joints]`` (deterministic for ``seed``).
 
+    All joints of ``limits`` move; motions with a self-colliding setpoint (``in_collision``
+    over all joints) are rejected; the knots cover ``path_joints`` (indices, default all).
     ``steps = 80`` decision steps (8 s) give paths like the papers' iiwa random set (~23 rad,
     ~150 knots, REFERENCE §4.1); the recording duration is not published."""
     key = jax.random.PRNGKey(seed)
@@ -62,9 +64,10 @@ def random_paths(limits: L.JointLimits, n_paths: int, seed: int, steps: int = 80
         key, sub = jax.random.split(key)
         motions = np.asarray(rollout(limits, sub, n_paths, steps, dt, substeps), np.float64)
         if in_collision is not None:
-            flat = motions.reshape(-1, motions.shape[-1])
-            hit = np.asarray(in_collision(flat)).reshape(motions.shape[:2]).any(axis=1)
+            hit = np.asarray(in_collision(motions)).any(axis=1)
             motions = motions[~hit]
+        if path_joints is not None:
+            motions = motions[..., np.asarray(path_joints)]
         for m in motions:
             paths.append(spline.resample(m, distance=resampling_distance, curvature_distance=curvature_distance))
             if len(paths) == n_paths:
@@ -79,25 +82,30 @@ def generate_dataset(robot: str, kind: str = "random", num_train: int = 200, num
                      seed: int = 0, root=None, overwrite: bool = False, steps: int = 80, dt: float = 0.1):
     """Generate ``<root>/<robot>/<kind>/{train,test}.npz`` and ``config.json`` (deterministic for
     ``seed``: the train split uses ``seed``, the test split ``seed + 1``). Returns the directory."""
-    from mjx_pathtrack import datasets
+    from mjx_pathtrack import datasets, robots
 
     if kind not in KINDS:
         raise datasets.DatasetError(f"unknown dataset kind {kind!r} to generate; known: {', '.join(KINDS)}")
-    limits, names = datasets.robot_limits(robot)
+    if robot not in robots.known_robots():
+        raise datasets.DatasetError(f"unknown robot {robot!r}; known: {', '.join(robots.known_robots())}")
     directory = datasets.dataset_dir(robot, kind, root)
     if (directory / "config.json").exists() and not overwrite:
         raise datasets.DatasetError(f"{directory} exists (use overwrite=True / --overwrite to replace it)")
-    limits = L.JointLimits.from_acc(limits.pos_min, limits.pos_max, limits.vel, limits.acc, dt)
+    loaded = robots.load_robot(robot, dt=dt)
+    path_joints = np.flatnonzero(np.asarray(loaded.path_mask))
+    names = [loaded.joint_names[i] for i in path_joints]
     splits = {}
     for split, count, split_seed in (("train", num_train, seed), ("test", num_test, seed + 1)):
         if count > 0:
-            splits[split] = random_paths(limits, count, split_seed, steps=steps, dt=dt)
+            splits[split] = random_paths(loaded.limits, count, split_seed, steps=steps, dt=dt,
+                                         in_collision=lambda q: robots.in_collision(loaded, q),
+                                         path_joints=path_joints)
             datasets.save_split(directory / f"{split}.npz", splits[split])
-    config = dict(format_version=datasets.FORMAT_VERSION, robot=robot, kind=kind, n_joints=limits.n_joints,
-                  joint_names=list(names), max_dis_between_knots=datasets.max_dis_between_knots(splits.values()),
+    config = dict(format_version=datasets.FORMAT_VERSION, robot=robot, kind=kind, n_joints=len(path_joints),
+                  joint_names=names, max_dis_between_knots=datasets.max_dis_between_knots(splits.values()),
                   num_train=num_train, num_test=num_test,
                   source={"type": "random_agent", "seed": seed, "steps": steps, "dt": dt, "substeps": 24,
                           "resampling_distance": 0.1, "curvature_sampling_distance": 0.3,
-                          "collision_check": False})
+                          "collision_check": "robots.in_collision on every setpoint"})
     datasets.write_config(directory / "config.json", config)
     return directory

@@ -22,14 +22,20 @@ from typing import Any
 import jax
 import numpy as np
 
-from mjx_pathtrack import datasets, iiwa
+from mjx_pathtrack import datasets, robots
 from mjx_pathtrack import reward as R
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
+from mjx_pathtrack.executors import MjxExecutor
 from mjx_pathtrack.evaluation import make_evaluator, summarize
 from mjx_pathtrack.wrappers import wrap_for_training
 
-#: deviation weights of the papers' iiwa nets (REFERENCE §1.5)
-IIWA_DEVIATION_WEIGHTS = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
+EXECUTORS = ("kinematic", "mjx")
+#: per-path-joint deviation weights of the papers' nets (REFERENCE §1.5)
+_IIWA_W = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
+_ARMAR4_W = (1.0, 1.0) + 2 * (1.0, 1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
+DEVIATION_WEIGHTS = {"iiwa": _IIWA_W, "iiwa_ball": _IIWA_W,
+                     "armar6": (1.0,) + 2 * (0.95, 0.95, 0.95, 0.95, 0.9, 0.8, 0.7, 0.6),
+                     "armar4": _ARMAR4_W, "armar4_legs": _ARMAR4_W}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +50,7 @@ class TrainConfig:
     robot: str = "iiwa"
     dataset: str = "random"
     dataset_root: str | None = None
+    executor: str = "kinematic"
     dt: float = 0.1
     n_next: int = 8
     alpha: float = 2.0
@@ -74,7 +81,7 @@ class TrainConfig:
                                   deviation_threshold=self.deviation_threshold, action=self.action_reward)
         return EnvConfig(dt=self.dt, n_next=self.n_next, duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
-                         deviation_weights=IIWA_DEVIATION_WEIGHTS if self.robot == "iiwa" else None,
+                         deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
                          reward=weights)
 
     @classmethod
@@ -90,13 +97,16 @@ class TrainConfig:
 
 
 def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
-    """The environment over one dataset split (``train`` or ``test``)."""
-    if config.robot != "iiwa":
-        raise ValueError(f"unknown robot {config.robot!r}; available for training: ['iiwa']")
-    limits = iiwa.joint_limits(config.dt)
+    """The environment over one dataset split (``train`` or ``test``) of a registry robot."""
+    robot = robots.load_robot(config.robot, dt=config.dt)
     meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
     paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
-    return PathTrackingEnv(limits, paths, float(meta["max_dis_between_knots"]), config.env_config())
+    path_joints = np.flatnonzero(np.asarray(robot.path_mask))
+    if config.executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {config.executor!r}; known: {', '.join(EXECUTORS)}")
+    executor = MjxExecutor(robot) if config.executor == "mjx" else None
+    return PathTrackingEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), config.env_config(),
+                           path_joints=path_joints, home=robot.q0, executor=executor)
 
 
 def atomic_write_bytes(path: FsPath, data: bytes) -> None:

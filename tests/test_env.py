@@ -10,23 +10,9 @@ import jax.numpy as jnp
 from mjx_pathtrack import iiwa, limits as L, spline as S
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv, normalize_position
 from mjx_pathtrack.wrappers import wrap_for_training
+from path_fixtures import line_path, random_walk_paths
 
 DT = 0.1
-
-
-def random_walk_paths(n_paths=6, n_knots=30, seed=0, max_knots=32):
-    rng = np.random.default_rng(seed)
-    paths = []
-    for _ in range(n_paths):
-        k = np.cumsum(rng.normal(0.0, 0.12, (n_knots, 7)), 0) + rng.uniform(-1, 1, 7)
-        paths.append(S.make_path(np.clip(k, -0.9 * iiwa.POS, 0.9 * iiwa.POS), max_knots=max_knots))
-    return S.stack_paths(paths)
-
-
-def line_path(length=1.0, joint=0, n_knots=6):
-    knots = np.zeros((n_knots, 7))
-    knots[:, joint] = np.linspace(0.0, length, n_knots)
-    return S.stack_paths([S.make_path(knots)])
 
 
 @pytest.fixture(scope="module")
