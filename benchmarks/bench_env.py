@@ -12,7 +12,6 @@ import time
 
 import mjx_pathtrack  # noqa: F401  (XLA flags before jax starts)
 import jax
-import jax.numpy as jnp
 
 from mjx_pathtrack import limits as L
 from mjx_pathtrack.training import TrainConfig, make_env

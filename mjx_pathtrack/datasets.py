@@ -35,17 +35,16 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import io
 import json
 import os
 import sys
-import tempfile
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path as FsPath
 
 import numpy as np
 
 from mjx_pathtrack import spline
+from mjx_pathtrack.fileio import atomic_write
 from mjx_pathtrack.limits import JointLimits
 
 FORMAT_VERSION = 1
@@ -104,31 +103,16 @@ def dataset_dir(robot: str, kind: str, root: str | os.PathLike | None = None) ->
     return FsPath(DEFAULT_ROOT if root is None else root) / robot / kind
 
 
-def _atomic_write(target: FsPath, write: Callable[[io.BufferedWriter], None]) -> None:
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def save_split(file: str | os.PathLike, paths: Sequence[np.ndarray]) -> None:
     """Write paths (each ``[K_i, n]``) atomically to an ``.npz`` as ``path_00000``, ..."""
     arrays = {f"path_{i:05d}": np.asarray(p, np.float64) for i, p in enumerate(paths)}
-    _atomic_write(FsPath(file), lambda f: np.savez_compressed(f, **arrays))
+    atomic_write(FsPath(file), lambda f: np.savez_compressed(f, **arrays))
 
 
 def write_config(file: str | os.PathLike, config: dict) -> None:
     """Write ``config.json`` atomically (sorted keys, indented)."""
     text = json.dumps(config, indent=2, sort_keys=True) + "\n"
-    _atomic_write(FsPath(file), lambda f: f.write(text.encode()))
+    atomic_write(FsPath(file), lambda f: f.write(text.encode()))
 
 
 def read_config(robot: str, kind: str, root=None) -> dict:

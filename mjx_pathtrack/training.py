@@ -14,7 +14,6 @@ import functools
 import json
 import os
 import pickle
-import tempfile
 import time
 from pathlib import Path as FsPath
 from typing import Any
@@ -26,6 +25,8 @@ from mjx_pathtrack import datasets, robots
 from mjx_pathtrack import reward as R
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.executors import MjxExecutor
+from mjx_pathtrack.export import export_policy
+from mjx_pathtrack.fileio import atomic_write_bytes
 from mjx_pathtrack.evaluation import make_evaluator, summarize
 from mjx_pathtrack.wrappers import wrap_for_training
 
@@ -109,22 +110,6 @@ def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
                            path_joints=path_joints, home=robot.q0, executor=executor)
 
 
-def atomic_write_bytes(path: FsPath, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 class Progress:
     """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv``."""
 
@@ -169,7 +154,9 @@ def ppo_networks(config: TrainConfig):
 
 def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True):
     """Train; returns ``(make_inference_fn, params, report)`` where ``report`` holds the
-    evaluation summaries before and after training on the test split."""
+    evaluation summaries before and after training on the test split. The run directory gets
+    ``config.json``, ``progress.csv``, ``checkpoints/``, ``params.pkl``, ``report.json`` and the
+    jitted policy export ``export/`` (:mod:`mjx_pathtrack.export`)."""
     from brax.training.agents.ppo import train as ppo
 
     run_dir = FsPath(run_dir)
@@ -221,6 +208,8 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
     if verbose:
         print("evaluation after training: ", _fmt(report["after"]), flush=True)
     atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
+    joint_names = robots.load_robot(config.robot, dt=config.dt).joint_names
+    export_policy(run_dir / "export", make_inference_fn, params, test_env, config.robot, joint_names)
     atomic_write_bytes(run_dir / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     return make_inference_fn, params, report
 

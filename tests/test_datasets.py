@@ -56,20 +56,6 @@ def test_save_load_roundtrip_and_load_paths(tmp_path):
         D.load_split("iiwa", "demo", "train", root=tmp_path)
 
 
-def test_atomic_write_keeps_old_file_on_failure(tmp_path):
-    file = tmp_path / "x" / "config.json"
-    D.write_config(file, {"a": 1})
-
-    def boom(f):
-        f.write(b"partial")
-        raise RuntimeError("disk full")
-
-    with pytest.raises(RuntimeError):
-        D._atomic_write(file, boom)
-    assert json.loads(file.read_text()) == {"a": 1}
-    assert os.listdir(file.parent) == ["config.json"]
-
-
 def test_import_npz_writes_split_and_config(tmp_path):
     paths = iiwa_paths(4)
     directory = D.import_paths(write_npz(tmp_path, paths), "iiwa", "mine", "test", root=tmp_path / "s")

@@ -7,7 +7,7 @@ import mjx_pathtrack  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from mjx_pathtrack import iiwa, limits as L, spline as S
+from mjx_pathtrack import iiwa, limits as L
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv, normalize_position
 from mjx_pathtrack.wrappers import wrap_for_training
 from path_fixtures import line_path, random_walk_paths

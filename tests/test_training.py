@@ -13,6 +13,7 @@ import pytest
 import mjx_pathtrack  # noqa: F401
 import jax
 
+from mjx_pathtrack.export import load_policy
 from mjx_pathtrack.training import TrainConfig, json_safe, latest_checkpoint, train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,6 +48,8 @@ def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
     assert json.loads((out / "report.json").read_text()) == json_safe(report)
     latest = latest_checkpoint(out / "checkpoints")
     assert latest is not None and latest[1] > 0
+    policy = load_policy(out / "export")
+    assert policy.manifest["robot"] == "iiwa" and policy(np.zeros(94, np.float32)).shape == (7,)
     saved = pickle.loads((out / "params.pkl").read_bytes())
     np.testing.assert_array_equal(jax.tree.leaves(saved)[0], np.asarray(jax.tree.leaves(params)[0]))
 
