@@ -56,8 +56,8 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
     inference = make_inference_fn(params, deterministic=True)
     key = jax.random.PRNGKey(0)  # unused by the deterministic policy
 
-    def policy(obs):
-        return inference(obs, key)[0]
+    def policy(obs):  # the environment clips actions to [-1, 1]; the export does it itself
+        return jnp.clip(inference(obs, key)[0], -1.0, 1.0)
 
     obs_size, act_size = int(env.observation_size), int(env.action_size)
     batch = jax.export.symbolic_shape("batch")[0]

@@ -75,6 +75,8 @@ class TrainConfig:
     eval_episodes: int = 128
     policy_layers: tuple[int, ...] = (256, 128)
     value_layers: tuple[int, ...] = (256, 128)
+    init_noise_std: float = 0.5
+    mean_init_scale: float = 0.01
     seed: int = 0
 
     def env_config(self) -> EnvConfig:
@@ -147,9 +149,18 @@ class Progress:
 def ppo_networks(config: TrainConfig):
     from brax.training.agents.ppo import networks as ppo_networks_module
 
+    # As in the papers (REFERENCE §6.1): a Gaussian policy whose samples the environment clips
+    # to [-1, 1], a learned state-independent log-std, and a mean head initialised near zero
+    # (normc(0.01) there) so that the initial mean action is ~0, the middle of every safe range:
+    # the robot starts by barely moving instead of leaving the path within a few steps.
     return functools.partial(ppo_networks_module.make_ppo_networks,
                              policy_hidden_layer_sizes=config.policy_layers,
-                             value_hidden_layer_sizes=config.value_layers)
+                             value_hidden_layer_sizes=config.value_layers,
+                             distribution_type="normal", noise_std_type="log",
+                             init_noise_std=config.init_noise_std,
+                             mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
+                             mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
+                                                          distribution="truncated_normal"))
 
 
 def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True):

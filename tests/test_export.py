@@ -16,15 +16,17 @@ from brax.training.agents.ppo import networks as ppo_networks
 from mjx_pathtrack import iiwa
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.export import ExportError, export_policy, load_policy
+from mjx_pathtrack.training import TrainConfig, ppo_networks as ppo_networks_factory
 from path_fixtures import random_walk_paths
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     env = PathTrackingEnv(iiwa.joint_limits(0.1), random_walk_paths(n_paths=2), 0.5, EnvConfig())
-    nets = ppo_networks.make_ppo_networks(env.observation_size, env.action_size,
-                                          preprocess_observations_fn=running_statistics.normalize,
-                                          policy_hidden_layer_sizes=(32, 16), value_hidden_layer_sizes=(8,))
+    # the network family training uses, with a mean head initialised large enough that some
+    # actions fall outside [-1, 1] (the export clips them like the environment does)
+    factory = ppo_networks_factory(TrainConfig(policy_layers=(32, 16), value_layers=(8,), mean_init_scale=3.0))
+    nets = factory(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
     make_inference_fn = ppo_networks.make_inference_fn(nets)
     key = jax.random.PRNGKey(0)
     normalizer = running_statistics.init_state(specs.Array((env.observation_size,), jnp.dtype("float32")))
@@ -41,7 +43,9 @@ def test_round_trip_matches_in_process_policy(exported):
     out, inference, env = exported
     policy = load_policy(out)
     obs = np.random.default_rng(0).uniform(-1, 1, (33, env.observation_size)).astype(np.float32)
-    expected = np.asarray(inference(jnp.asarray(obs), jax.random.PRNGKey(5))[0])
+    raw = np.asarray(inference(jnp.asarray(obs), jax.random.PRNGKey(5))[0])
+    assert np.abs(raw).max() > 1.0  # the clipping below is exercised
+    expected = np.clip(raw, -1.0, 1.0)
     np.testing.assert_allclose(policy(obs), expected, atol=1e-6)
     np.testing.assert_allclose(policy(obs[0]), expected[0], atol=1e-6)  # single observation
     manifest = policy.manifest
