@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 from typing import Callable, NamedTuple, NoReturn
 
 import jax
@@ -79,7 +80,7 @@ class TrackerOutput:
     (constant within the step); status; s / path_length [rad] arc position on the reference
     and its length; progress = s / path_length; reached_end; fault: why the tracker brakes
     (``None`` when tracking or braking at the end); action ``[n]`` the policy output used
-    (zeros when it was invalid).
+    (zeros when it was invalid; ignored while braking).
     """
 
     time: np.ndarray
@@ -166,8 +167,8 @@ class OnlineTracker:
         check = _checked_range(limits, p, v, a, dt)
         if bool(np.any(np.asarray(check.violation))):
             bad = int(np.flatnonzero(np.asarray(check.violation))[0])
-            raise ValueError(f"initial state of joint {bad} (p={p[bad]:.6g}, v={v[bad]:.6g}, a={a[bad]:.6g}) is outside "
-                             f"the limits or cannot be stopped safely")
+            raise ValueError(f"initial state of joint {bad} (p={p[bad]:.6g}, v={v[bad]:.6g}, a={a[bad]:.6g}) "
+                             f"is outside the limits or cannot be stopped safely")
         self._lo = np.asarray(limits.pos_min, np.float64)[self.path_joints]
         self._hi = np.asarray(limits.pos_max, np.float64)[self.path_joints]
         # the environment with a placeholder reference (it only fixes the shapes: the tracker's
@@ -182,7 +183,8 @@ class OnlineTracker:
         self.observation_size, self.n_joints, self.n_path = self.env.observation_size, n, m
         expected = getattr(policy, "observation_size", self.observation_size)
         if expected != self.observation_size:
-            raise ValueError(f"policy expects observations of size {expected}, the tracker builds {self.observation_size}")
+            raise ValueError(f"policy expects observations of size {expected}, "
+                             f"the tracker builds {self.observation_size}")
         track = TrackState(p=jnp.asarray(p), v=jnp.asarray(v), a=jnp.asarray(a), s=jnp.zeros(()),
                            s_start=jnp.zeros(()), path_index=jnp.zeros((), jnp.int32), n_knots=placeholder.n_knots,
                            steps=jnp.zeros((), jnp.int32), max_steps=jnp.asarray(np.iinfo(np.int32).max, jnp.int32),
@@ -195,7 +197,8 @@ class OnlineTracker:
         key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), dt, k, int(n_next),
                float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots)
         if key not in _COMPILED:
-            _COMPILED[key] = (jax.jit(self._step_core), jax.jit(self._replace_core), jax.jit(self.env.observe))
+            _COMPILED[key] = (jax.jit(functools.partial(_step_core, self.env, controller_dt)), jax.jit(_replace_core),
+                              jax.jit(self.env.observe))
         self._step_fn, self._replace_fn, self._obs_fn = _COMPILED[key]
         self._obs = self._obs_fn(track)
         self._last_status = Status.STOPPED if self._at_rest(v, a) else Status.BRAKING
@@ -273,7 +276,8 @@ class OnlineTracker:
         track, count, expected = self._replace_fn(self._core.track, jnp.asarray(padded, jnp.float32),
                                                   jnp.asarray(len(k), jnp.int32))
         if int(count) != int(expected) or not bool(jnp.all(jnp.isfinite(track.path.table_s))):
-            self._reject(f"update_path: the new reference could not be built ({int(count)} of {int(expected)} knots kept)")
+            self._reject(f"update_path: the new reference could not be built "
+                         f"({int(count)} of {int(expected)} knots kept)")
         self._accept(track)
 
     # -- decision step ----------------------------------------------------------------------
@@ -300,47 +304,6 @@ class OnlineTracker:
         return np.asarray(self._obs)
 
     # -- jitted cores -----------------------------------------------------------------------
-
-    def _step_core(self, core: _Core, action: Array, bad_action: Array):
-        env = self.env
-        track = core.track
-        fault = core.fault | bad_action
-        end_braking = track.braking
-        action = jnp.where(fault, 0.0, action)
-        new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action)
-        length = new.path.length
-        reached = new.s >= length
-        new = new._replace(braking=end_braking | reached)
-        braking = end_braking | fault
-        stopped = braking & self._at_rest_jnp(new.v, new.a)
-        # at rest after braking: remove the float32 residue (<= STOP_FRACTION of the limits) so
-        # that the robot holds exactly (braking from v = a = 0 keeps v = a = 0)
-        new = new._replace(v=jnp.where(stopped, 0.0, new.v), a=jnp.where(stopped, 0.0, new.a))
-        t = self.controller_dt * jnp.arange(1, self.substeps + 1, dtype=jnp.float32)[:, None]
-        p_set, v_set, a_set = L.integrate(track.p, track.v, track.a, new.a, self.dt, t)
-        # the last setpoint is the next decision state exactly
-        p_set, v_set, a_set = p_set.at[-1].set(new.p), v_set.at[-1].set(new.v), a_set.at[-1].set(new.a)
-        jerk = (new.a - track.a) / self.dt
-        obs = env.observe(new)
-        return _Core(new, fault), (p_set, v_set, a_set, jerk, new.s, length, reached, braking, stopped, obs)
-
-    def _replace_core(self, track: TrackState, padded: Array, count: Array):
-        s = jnp.clip(track.s, 0.0, track.path.length)
-        path, s = _drop_behind(track.path, s)
-        # replace_ahead keeps the knots up to the segment of s, then q(s), then the new knots
-        seg, _ = S.locate(path, s)
-        new_path = S.replace_ahead(path, s, padded, count)
-        # knots dropped as duplicates of their predecessor (or of q(s)) are not lost capacity
-        pts = jnp.concatenate([S.point_at(path, s)[None], padded])
-        gap = jnp.linalg.norm(jnp.diff(pts, axis=0), axis=-1)
-        distinct = jnp.sum((gap > S.DUPLICATE_DISTANCE) & (jnp.arange(padded.shape[0]) < count))
-        expected = seg + 1 + 1 + distinct
-        # the robot is at the cut point q(s), knot seg + 1 of the new reference: take its arc
-        # position (equal to s up to rounding) so that the observation's knot0 is that point
-        s = new_path.knot_s[seg + 1]
-        track = track._replace(path=new_path, n_knots=new_path.n_knots, s=s, s_start=jnp.zeros(()),
-                               braking=track.braking & (s >= new_path.length))
-        return track, new_path.n_knots, expected
 
     # -- helpers ----------------------------------------------------------------------------
 
@@ -394,10 +357,7 @@ class OnlineTracker:
         self._last_status = Status.BRAKING if bool(track.braking) else Status.TRACKING
 
     def _at_rest(self, v, a) -> bool:
-        return bool(self._at_rest_jnp(jnp.asarray(v), jnp.asarray(a)))
-
-    def _at_rest_jnp(self, v, a):
-        return jnp.all(jnp.abs(v) <= STOP_FRACTION * self.limits.vel) & jnp.all(jnp.abs(a) <= STOP_FRACTION * self.limits.acc)
+        return bool(_at_rest(self.limits, jnp.asarray(v), jnp.asarray(a)))
 
     def _joint_vector(self, x, name: str) -> np.ndarray:
         n = self.limits.n_joints
@@ -409,7 +369,59 @@ class OnlineTracker:
         return x.astype(np.float32)
 
 
-#: jitted cores per tracker configuration (the cores read only the configuration from ``self``)
+def _step_core(env: PathTrackingEnv, controller_dt: float, core: _Core, action: Array, bad_action: Array):
+    """One decision step of the tracker (jitted per configuration): the environment's transition
+    with braking forced by a fault, setpoints at the controller instants, status, next observation."""
+    dt, k = env.config.dt, env.config.substeps
+    track = core.track
+    fault = core.fault | bad_action
+    end_braking = track.braking
+    action = jnp.where(fault, 0.0, action)
+    new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action)
+    length = new.path.length
+    reached = new.s >= length
+    new = new._replace(braking=end_braking | reached)
+    braking = end_braking | fault
+    stopped = braking & _at_rest(env.limits, new.v, new.a)
+    # at rest after braking: remove the float32 residue (<= STOP_FRACTION of the limits) so
+    # that the robot holds exactly (braking from v = a = 0 keeps v = a = 0)
+    new = new._replace(v=jnp.where(stopped, 0.0, new.v), a=jnp.where(stopped, 0.0, new.a))
+    t = controller_dt * jnp.arange(1, k + 1, dtype=jnp.float32)[:, None]
+    p_set, v_set, a_set = L.integrate(track.p, track.v, track.a, new.a, dt, t)
+    # the last setpoint is the next decision state exactly
+    p_set, v_set, a_set = p_set.at[-1].set(new.p), v_set.at[-1].set(new.v), a_set.at[-1].set(new.a)
+    jerk = (new.a - track.a) / dt
+    obs = env.observe(new)
+    return _Core(new, fault), (p_set, v_set, a_set, jerk, new.s, length, reached, braking, stopped, obs)
+
+
+def _replace_core(track: TrackState, padded: Array, count: Array):
+    """``update_path`` (jitted): drop the knots behind, replace the reference ahead of ``s``;
+    returns the new state, the knot count and the count expected if nothing was dropped."""
+    s = jnp.clip(track.s, 0.0, track.path.length)
+    path, s = _drop_behind(track.path, s)
+    # replace_ahead keeps the knots up to the segment of s, then q(s), then the new knots
+    seg, _ = S.locate(path, s)
+    new_path = S.replace_ahead(path, s, padded, count)
+    # knots dropped as duplicates of their predecessor (or of q(s)) are not lost capacity
+    pts = jnp.concatenate([S.point_at(path, s)[None], padded])
+    gap = jnp.linalg.norm(jnp.diff(pts, axis=0), axis=-1)
+    distinct = jnp.sum((gap > S.DUPLICATE_DISTANCE) & (jnp.arange(padded.shape[0]) < count))
+    expected = seg + 1 + 1 + distinct
+    # the cut point q(s) is knot seg + 1 of the new reference: take its arc position (equal to
+    # s up to rounding) so that the observation's knot0 is that point, as in the environment
+    s = new_path.knot_s[seg + 1]
+    track = track._replace(path=new_path, n_knots=new_path.n_knots, s=s, s_start=jnp.zeros(()),
+                           braking=track.braking & (s >= new_path.length))
+    return track, new_path.n_knots, expected
+
+
+def _at_rest(limits: L.JointLimits, v: Array, a: Array) -> Array:
+    """``[]`` bool: every joint's |v| and |a| within ``STOP_FRACTION`` of its limits."""
+    return jnp.all(jnp.abs(v) <= STOP_FRACTION * limits.vel) & jnp.all(jnp.abs(a) <= STOP_FRACTION * limits.acc)
+
+
+#: jitted cores per tracker configuration (limits, dt, rate, N, knot scale, path joints, max_knots)
 _COMPILED: dict = {}
 _checked_range = jax.jit(L.safe_acceleration_range_checked, static_argnums=(4,))
 

@@ -187,6 +187,24 @@ def test_any_policy_output_keeps_the_limits_near_the_position_limits(kind, seed)
     assert audit.worst <= REL
 
 
+def test_reference_replaced_at_every_step_keeps_capacity_and_limits():
+    """A stream of adjustments, one per decision step, each with as many knots as fit: the knots
+    behind the robot are dropped so that none is refused; every setpoint stays within limits."""
+    rng = np.random.default_rng(5)
+    t = tracker(steering_policy)
+    audit = Auditor(t)
+    hi = np.asarray(LIM.pos_max, np.float64)
+    t.set_path(straight_path(np.zeros(N), 0.5 * hi, 6)[1:])
+    for _ in range(30):
+        audit.step()
+        ahead = np.clip(t.position + np.cumsum(rng.uniform(-0.15, 0.25, (t.max_knots - 2, N)), axis=0), -hi, hi)
+        t.update_path(ahead)
+        assert int(t.path.n_knots) == t.max_knots
+        assert t.status is Status.TRACKING
+    assert audit.worst <= REL
+    assert t._replace_fn._cache_size() == 1
+
+
 def test_bad_path_mid_motion_errors_and_brakes_to_a_safe_stop():
     t = tracker(steering_policy)
     audit = Auditor(t)
