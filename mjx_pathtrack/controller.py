@@ -283,7 +283,11 @@ class OnlineTracker:
     # -- decision step ----------------------------------------------------------------------
 
     def step(self) -> TrackerOutput:
-        """One decision step: query the policy, return the setpoints of the next ``dt``."""
+        """One decision step: query the policy, return the setpoints of the next ``dt``.
+
+        An invalid action (NaN/inf, wrong shape, not numeric) does not raise: the tracker brakes
+        and reports ``fault``. An exception raised *by the policy* propagates, with the tracker's
+        state untouched (calling ``step`` again retries the same decision)."""
         action, fault = self._query_policy()
         self._core, out = self._step_fn(self._core, action, jnp.asarray(fault is not None))
         if fault is not None and self._fault is None:
