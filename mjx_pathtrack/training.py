@@ -113,10 +113,14 @@ def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
 
 
 class Progress:
-    """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv``."""
+    """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv`` and
+    writes the same scalars as TensorBoard events to ``run_dir/tensorboard``."""
 
     def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0, echo: bool = True):
+        from tensorboardX import SummaryWriter
+
         self.file = run_dir / "progress.csv"
+        self.board = SummaryWriter(str(run_dir / "tensorboard"))
         self.echo = echo
         self.total = total_steps
         self.t0 = time.monotonic()
@@ -140,6 +144,10 @@ class Progress:
             if new:
                 writer.writeheader()
             writer.writerow(row)
+        for key, value in row.items():
+            if key != "step" and np.isfinite(value):
+                self.board.add_scalar(key, value, step)
+        self.board.flush()
         ret = row.get("eval/episode_reward", float("nan"))
         if self.echo:
             print(f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}",

@@ -46,6 +46,9 @@ def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
         assert set(summary) >= {"return", "end_reached", "mean_deviation", "stop_time_s"}
         assert np.isfinite(summary["return"])
     assert json.loads((out / "report.json").read_text()) == json_safe(report)
+    rows = (out / "progress.csv").read_text().splitlines()
+    assert rows[0].startswith("step,env_steps_per_s,eta_s") and len(rows) >= 3  # header + one row per evaluation
+    assert any(p.name.startswith("events.out.tfevents") for p in (out / "tensorboard").iterdir())
     latest = latest_checkpoint(out / "checkpoints")
     assert latest is not None and latest[1] > 0
     policy = load_policy(out / "export")
