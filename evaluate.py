@@ -24,7 +24,8 @@ def parse_args(argv=None):
     parser.add_argument("--episodes", type=int, default=None, help="default: one per path")
     parser.add_argument("--seed", type=int, default=0, help="sub-path draw")
     parser.add_argument("--full-paths", action="store_true", help="whole paths instead of random sub-paths")
-    parser.add_argument("--batch", type=int, default=256, help="episodes per jitted batch")
+    parser.add_argument("--batch", type=int, default=256,
+                        help="episodes per jitted batch (the sub-paths drawn depend on --seed and --batch)")
     parser.add_argument("--plot-episode", type=int, default=0)
     parser.add_argument("--timing-decisions", type=int, default=200, help="0: skip the computation-time measurement")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")

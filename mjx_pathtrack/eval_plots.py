@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 from pathlib import Path as FsPath
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -75,8 +76,8 @@ def plot_episode(out_dir: FsPath, env: PathTrackingEnv, ro: E.Rollout, robot=Non
 
     pj = np.asarray(env.path_joints)
     offsets, executed = E.sample_executed(E.executed_polyline(ro, b), pj)
-    path = E.jax.tree.map(lambda x: x[b:b + 1], ro.paths)
-    ref = np.asarray(E._reference_points(path, jnp.asarray(ro.s_start[b] + offsets[None], jnp.float32)))[0]
+    path = jax.tree.map(lambda x: x[b:b + 1], ro.paths)
+    ref = np.asarray(E.reference_points(path, jnp.asarray(ro.s_start[b] + offsets[None], jnp.float32)))[0]
     fig, ax = plt.subplots(figsize=(9, 5))
     for k, j in enumerate(pj):
         line, = ax.plot(offsets, ref[:, k], lw=2, alpha=0.4)

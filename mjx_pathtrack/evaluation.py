@@ -1,7 +1,14 @@
-"""Episode metrics of a policy on a path-tracking environment (paper 000 Table I fields).
+"""Episode metrics of a policy on a path-tracking environment (paper 000 §IV, REFERENCE §6.2).
 
 :func:`evaluate` runs a batch of episodes to their end (no auto-reset), jitted and vmapped, and
-returns per-episode arrays; :func:`summarize` turns them into the numbers the README reports.
+returns per-episode arrays; :func:`summarize` turns them into the numbers training reports.
+
+The full evaluation (``evaluate.py``): :func:`rollout` runs one episode per chosen path and
+records every step inside the jitted scan (executed sub-step positions, commanded states,
+observations, in-step limit ratios); :func:`episode_table` post-processes it in NumPy into the
+paper's per-episode metrics (durations, whole-path joint and Cartesian deviations sampled every
+0.01 rad of arc length, terminations, limit audit); :func:`aggregate` gives means/maxima;
+:func:`decision_times` measures the computation time per decision (Table IX).
 """
 
 from __future__ import annotations
@@ -13,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack import limits as L
+from mjx_pathtrack import spline as S
 from mjx_pathtrack.env import PathTrackingEnv
 
 Array = jax.Array
@@ -243,9 +251,9 @@ def _pad(rows: list[np.ndarray], fill: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @jax.jit
-def _reference_points(paths, s: Array) -> Array:
-    from mjx_pathtrack import spline as S
-
+def reference_points(paths: S.Path, s: Array) -> Array:
+    """Reference positions ``[B, M, m]`` of a stacked path batch ``[B]`` at arc lengths ``s [B, M]``
+    (clamped to each path's end)."""
     return jax.vmap(S.point_at)(paths, s)
 
 
@@ -273,7 +281,7 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
     offsets, samples = zip(*(sample_executed(executed_polyline(ro, b), pj, spacing) for b in range(B)))
     off, mask = _pad(list(offsets), 0.0)
     exe, _ = _pad(list(samples), 0.0)
-    ref = np.asarray(_reference_points(ro.paths, jnp.asarray(ro.s_start[:, None] + off, jnp.float32)), np.float64)
+    ref = np.asarray(reference_points(ro.paths, jnp.asarray(ro.s_start[:, None] + off, jnp.float32)), np.float64)
     dev = np.linalg.norm(ref - exe[..., pj], axis=-1)
     last = mask.sum(1) - 1
     out: dict[str, np.ndarray] = {
