@@ -153,8 +153,9 @@ class PathTrackingEnv(Env):
     def backend(self) -> str:
         return self.executor.name
 
-    def reset(self, rng: Array) -> State:
-        track = self.initial_state(rng)
+    def reset(self, rng: Array, index: Array | None = None) -> State:
+        """New episode; ``index`` (int ``[]``) picks the dataset path instead of a random one."""
+        track = self.initial_state(rng, index)
         zero = jnp.zeros(())
         metrics = {k: zero for k in self.metric_names()}
         return State(pipeline_state=track, obs=self.observe(track), reward=zero, done=zero,
@@ -172,11 +173,14 @@ class PathTrackingEnv(Env):
         path = jax.tree.map(lambda x: x[index], self.paths)
         return path if n_knots is None else path._replace(n_knots=n_knots)
 
-    def initial_state(self, rng: Array) -> TrackState:
-        """Random path, random sub-path (REFERENCE §3.4), robot at rest on its start point."""
+    def initial_state(self, rng: Array, index: Array | None = None) -> TrackState:
+        """Random path (or dataset path ``index``), random sub-path (REFERENCE §3.4), robot at
+        rest on its start point. The sub-path draw does not depend on ``index``."""
         cfg = self.config
         rng, k_path, k_sub = jax.random.split(rng, 3)
-        index = jax.random.randint(k_path, (), 0, self.n_paths)
+        if index is None:
+            index = jax.random.randint(k_path, (), 0, self.n_paths)
+        index = jnp.asarray(index, jnp.int32)
         full = self.path(index)
         total = full.length
         path, s0 = S.sample_sub_path(full, k_sub, cfg.start_range, cfg.min_fraction, cfg.max_fraction)
