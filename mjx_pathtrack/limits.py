@@ -27,15 +27,33 @@ falls by ``J dt`` per decision step down to ``-A`` (the pointwise lowest motion)
 the steps around the stop it never goes below the velocity lower bound, so braking towards
 ``P`` cannot push the velocity below ``-V`` once the joint has stopped (without this, states
 arise where position and velocity limits conflict). Far from the stop the descent has a closed
-form; the last few decision steps are simulated. The bound is found by bisection (always on the
-safe side). Paper 001's discrete profile (D) -- reach ``P`` with zero velocity *exactly on a
+form; the last few decision steps are simulated ("tail").
+
+The bound is not bisected any more. After step 1 the acceleration only falls, so the peak is
+the position at the one downward zero crossing of the velocity (full-jerk part, partial step to
+``-A`` or hold at ``-A``) or inside step 0. Its root in ``a1`` is found with a few safeguarded
+Newton steps on this piecewise closed form (``_stop_model``; in the hold piece the peak is a
+quadratic in ``a1`` and solved exactly; the step-0 piece is a quadratic in the crossing time);
+the root is snapped down to the grid a 14-step bisection would return (``lo + i (hi - lo)
+2^-14``) and checked once with the exact stop (if rounding made it fail, one grid value or a
+Newton step lower is checked, else ``lo``). The simulated tail is skipped for joints where the velocity floor provably
+cannot bind (``A dt + A^2/(2J) + J dt^2/8 <= V``, a static per-joint split; true for the iiwa
+at ``dt <= 0.05`` and for all joints but iiwa_joint_1 at ``dt = 0.1``). Joints where it can bind
+(dt = 0.4, low jerk limits, traced limits) still bisect the exact stop with the simulated tail
+(14 steps) and are as slow as before. Every returned value has passed the exact check (or is
+``lo``, as before).
+
+Paper 001's discrete profile (D) -- reach ``P`` with zero velocity *exactly on a
 decision step* ``K`` (acceleration falling at full jerk, held at ``-A``, one free last grid
 value; a 2x2 linear solve per candidate ``K``) -- is used instead when it is tighter and its own
 stop passes the same check: it avoids overshoot-and-return oscillations. Against klimits 1.1.3
-(the papers' C library) the result agrees within 1e-3 a_max on > 99.8 % of random-rollout states
-at dt = 0.1 and 0.05 and is never wider there; the rare narrower states are next to a limit,
+(the papers' C library) the result agrees within 1e-3 a_max on 99.91 % (dt = 0.1) and 99.80 %
+(dt = 0.05) of random-rollout states (99.96 / 99.83 % with the former bisection: the closed
+form's grid candidate sometimes lands one grid value lower) and is never wider there; the rare narrower states are next to a limit,
 where klimits' profile accepts stops that overshoot ``P`` inside a step or leave no velocity-safe
-continuation.
+continuation. klimits solves each piece of its profile family in closed form (generated C code,
+REFERENCE §5.2) and has no velocity-safe tail and no float32 reserve; here the pieces are
+simpler (one braking profile) but verified with an exact check, and the tail is the extra cost.
 
 Float32: limits are pulled in by ``MARGIN``; each planned stop keeps a position reserve per
 decision step until the stop and a small velocity reserve, so re-evaluating the same plan on
@@ -65,9 +83,13 @@ Array = jax.Array
 
 #: default ``a_settle / A`` (klimits' ``acceleration_after_max_vel_limit_factor`` in the papers' code)
 SETTLE_FACTOR = 0.01
-#: bisection iterations of the position bound (the result is at most 2*A*2**-n below the
-#: exact bound, 1.2e-4*A for 14; it is always on the safe side)
-POSITION_ITERATIONS = 14
+#: Newton iterations (on the closed-form braking peak) of the position bound before the exact
+#: check of the candidate (see _position_upper_bound); the result is always exactly verified
+POSITION_ITERATIONS = 4
+#: bisection steps of the position bound for joints whose velocity floor can bind (see
+#: _tail_steps), below the closed-form upper estimate; the other joints snap their closed-form
+#: root down to the same grid (``(hi - lo) 2**-14``); always on the safe side
+POSITION_BISECTIONS = 14
 #: relative margin by which position/velocity limits are pulled in against float32 rounding
 MARGIN = 2e-6
 #: relative velocity reserve of the planned stop in the position bound (see _safe_stop_peak)
@@ -187,9 +209,10 @@ def _constant_jerk(p, v, a, jerk, t):
             a + jerk * t)
 
 
-def _segment_max_position(p, v, a, jerk, length):
-    """Max over ``s in [0, length]`` of ``p + v s + a s^2/2 + jerk s^3/6`` (elementwise)."""
-    best = jnp.maximum(p, _constant_jerk(p, v, a, jerk, length)[0])
+def _segment_argmax(p, v, a, jerk, length):
+    """``(max, argmax)`` over ``s in [0, length]`` of ``p + v s + a s^2/2 + jerk s^3/6`` (elementwise)."""
+    end = _constant_jerk(p, v, a, jerk, length)[0]
+    best, s_best = jnp.where(end > p, end, p), jnp.where(end > p, length, 0.0)
     # stationary points: jerk/2 s^2 + a s + v = 0, solved in the cancellation-free form
     disc = a * a - 2.0 * jerk * v
     root = jnp.sqrt(jnp.maximum(disc, 0.0))
@@ -200,8 +223,15 @@ def _segment_max_position(p, v, a, jerk, length):
     for s in candidates:
         inside = (disc >= 0) & (s > 0) & (s < length)
         s = jnp.where(inside, s, 0.0)
-        best = jnp.where(inside, jnp.maximum(best, _constant_jerk(p, v, a, jerk, s)[0]), best)
-    return best
+        value = _constant_jerk(p, v, a, jerk, s)[0]
+        higher = inside & (value > best)
+        best, s_best = jnp.where(higher, value, best), jnp.where(higher, s, s_best)
+    return best, s_best
+
+
+def _segment_max_position(p, v, a, jerk, length):
+    """Max over ``s in [0, length]`` of ``p + v s + a s^2/2 + jerk s^3/6`` (elementwise)."""
+    return _segment_argmax(p, v, a, jerk, length)[0]
 
 
 def _braking_peak(p0, v0, a0, a1, dt, A, delta):
@@ -302,42 +332,168 @@ def _grid_stop_bound(p0, v0, a0, P, dt, A, delta, K, n_full):
     return x, feasible
 
 
+def _stop_model(p0, v0, a0, a1, dt, A, delta):
+    """Newton model of :func:`_position_upper_bound`: the highest position *after step 1* of
+    the braking profile of :func:`_braking_peak` (elementwise). Returns ``(peak, slope,
+    k_stop, hold_root)``: ``slope = d peak / d a1``, ``k_stop`` the decision step of the stop,
+    and ``hold_root(T)`` the exact ``a1`` with ``peak = T`` if the stop stays in the hold at
+    ``-A`` with the same number of full-jerk steps (``None``-like ``nan`` otherwise).
+
+    After step 0 the acceleration only falls, so the velocity has one downward zero crossing
+    (in the full-jerk part, the partial step to ``-A`` or the hold at ``-A``); the peak is
+    there (or at the end of step 0 if the velocity is not positive after it). At a maximum
+    the velocity is zero, so the slope is the partial derivative of the position at the fixed
+    stop time. For a fixed number ``m`` of full-jerk steps, position and velocity at the start
+    of the hold are linear in ``a1`` and the hold peak ``p3 + v3^2/(2A)`` is a quadratic."""
+    h = 0.5 * dt
+    jerk_full = delta / dt
+    p1, v1, _ = integrate(p0, v0, a0, a1, dt, dt)
+    m = jnp.maximum(jnp.ceil((a1 + A) / delta) - 1.0, 0.0)
+    tf = m * dt
+    a2 = a1 - m * delta
+    v2 = v1 + 0.5 * tf * (a1 + a2)
+    p2 = p1 + tf * (v1 + tf * (0.5 * a1 - jerk_full * tf / 6.0))
+    v3 = v2 + 0.5 * (a2 - A) * dt
+    p3 = p2 + dt * v2 + dt * dt * (a2 / 3.0 - A / 6.0)
+    dv2 = h + tf
+    dp2 = dt * dt / 6.0 + tf * (h + 0.5 * tf)
+    dv3 = dv2 + h
+    dp3 = dp2 + dt * dv2 + dt * dt / 3.0
+    full, last = v2 <= 0, v3 <= 0
+
+    def pick(x_full, x_last, x_hold):
+        return jnp.where(full, x_full, jnp.where(last, x_last, x_hold))
+
+    ps, vs, as_ = pick(p1, p2, p3), pick(v1, v2, v3), pick(a1, a2, -A)
+    js = pick(-jerk_full, -(a2 + A) / dt, 0.0)
+    r = jnp.sqrt(jnp.maximum(as_ * as_ - 2.0 * js * vs, 0.0))
+    s = jnp.where(vs > 0, 2.0 * vs / jnp.maximum(r - as_, 1e-30),
+                  jnp.where(js < 0, (as_ + r) / jnp.where(js < 0, -js, 1.0), 0.0))
+    s = jnp.clip(s, 0.0, pick(tf, dt, jnp.inf))
+    peak = ps + s * (vs + s * (0.5 * as_ + js * s / 6.0))
+    dps, dvs = pick(dt * dt / 6.0, dp2, dp3), pick(h, dv2, dv3)
+    das, djs = pick(1.0, 1.0, 0.0), pick(0.0, -1.0 / dt, 0.0)
+    slope = dps + s * (dvs + s * (0.5 * das + djs * s / 6.0))
+    k_stop = jnp.where(v1 <= 0, 1.0, pick(1.0 + jnp.ceil(s / dt), m + 2.0, m + 2.0 + jnp.ceil(s / dt)))
+    hold = ~full & ~last
+
+    def hold_root(T):
+        # u = v3 at the root: u^2/(2A) + c1 u + c0 = 0 with p3 + c1 (u - v3) = position part
+        c1 = dp3 / dv3
+        c0 = p3 - c1 * v3 - T
+        u = A * (jnp.sqrt(jnp.maximum(c1 * c1 - 2.0 * c0 / A, 0.0)) - c1)
+        return jnp.where(hold, a1 + (u - v3) / dv3, jnp.nan)
+
+    return peak, slope, k_stop, hold_root
+
+
+def _step0_root(p0, v0, a0, T, dt):
+    """Largest ``a1`` whose in-step position maximum (velocity crossing zero at ``s <= dt``
+    inside step 0) equals ``T``, ``inf`` if the in-step maximum cannot reach ``T``.
+    Parametrised by the crossing time ``s``: ``jerk = -2 (v0 + a0 s)/s^2`` and the peak is
+    ``p0 + 2/3 v0 s + a0 s^2/6``, a quadratic in ``s``. Elementwise."""
+    beta = (2.0 / 3.0) * v0
+    c = p0 - T
+    disc = beta * beta - (2.0 / 3.0) * a0 * c
+    s = 2.0 * (-c) / (beta + jnp.sqrt(jnp.maximum(disc, 0.0)))
+    valid = (v0 > 0) & (c <= 0) & (disc >= 0) & (s <= dt)
+    s = jnp.maximum(jnp.where(valid, s, dt), 1e-30)
+    a1 = a0 - 2.0 * (v0 + a0 * s) * dt / (s * s)
+    return jnp.where(valid, a1, jnp.inf)
+
+
 def _position_upper_bound(p0, v0, a0, P, reserve, V, settle, dt, A, delta, lo, hi, iterations, tail_steps):
     """Largest ``a1 in [lo, hi]`` whose velocity-safe stop (:func:`_safe_stop_peak`) does not
-    exceed ``P`` less ``reserve`` per decision step until the stop (``lo`` if none; ``hi`` if
-    all). The reserve shrinks by one step's worth as the stop comes closer, which absorbs the
-    float32 rounding of re-evaluating the same plan on the next step. A state that rounding left
-    a hair above the target may stay but not climb."""
+    exceed ``P`` less ``reserve`` per decision step until the stop (``lo`` if none is found).
 
-    def ok(a1):
-        peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps)
-        return peak <= jnp.maximum(P - reserve * k_stop, p0)
+    The reserve shrinks by one step's worth as the stop comes closer, which absorbs the float32
+    rounding of re-evaluating the same plan on the next step. A state that rounding left a hair
+    above the target may stay but not climb.
 
-    ok_hi = ok(hi)
+    Search: the in-step peak of step 0 has a closed-form root (:func:`_step0_root`); the peak
+    after step 1 gets ``iterations`` safeguarded Newton steps from ``hi`` on the closed-form
+    model (:func:`_stop_model`; exact root of the quadratic when the stop is in the hold at
+    ``-A``). With ``tail_steps == 0`` (the velocity floor cannot bind) the smaller root, snapped
+    down to the bisection grid, is checked with the exact braking peak (twice at most). With
+    ``tail_steps > 0`` the exact stop with the simulated tail is bisected in ``[lo, hi]``
+    (``POSITION_BISECTIONS`` steps) as before; the Newton part is then unused. Only exactly
+    verified values are returned (or ``lo``)."""
 
-    def body(_, bracket):
-        good, bad = bracket
-        mid = 0.5 * (good + bad)
-        ok_mid = ok(mid)
-        return jnp.where(ok_mid, mid, good), jnp.where(ok_mid, bad, mid)
+    def excess(a1):
+        """Exact peak minus target (> 0: a1 is not safe) and the stop step."""
+        if tail_steps:
+            peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps)
+        else:
+            peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
+        return peak - jnp.maximum(P - reserve * k_stop, p0), k_stop
 
-    good, _ = jax.lax.fori_loop(0, iterations, body, (lo, hi))
-    exact = jnp.where(ok_hi, hi, good)
+    def newton(x):
+        peak, slope, k_stop, hold_root = _stop_model(p0, v0, a0, x, dt, A, delta)
+        target = jnp.maximum(P - reserve * k_stop, p0)
+        step = hold_root(target)
+        step = jnp.where(jnp.isnan(step), x - (peak - target) / jnp.maximum(slope, 1e-30), step)
+        return peak - target, step, slope
+
+    x, good, bad = hi, lo, hi
+    for _ in range(iterations):
+        g, step, _ = newton(x)
+        fine = g <= 0
+        good, bad = jnp.where(fine, jnp.maximum(good, x), good), jnp.where(fine, bad, jnp.minimum(bad, x))
+        x = jnp.where(fine, x, jnp.where((step > good) & (step < bad), step, 0.5 * (good + bad)))
+    # Model root (the Newton iterates of this convex peak stay on the unsafe side, so the last
+    # update is the best estimate), and the closed-form root of the in-step peak of step 0.
+    g, step, slope = newton(x)
+    root = jnp.where(good >= hi, hi, jnp.where(g <= 0, x, step))
+    root = jnp.maximum(jnp.minimum(root, _step0_root(p0, v0, a0, jnp.maximum(P - reserve, p0), dt)), lo)
+    if tail_steps:
+        # Bisection of the exact stop with the simulated tail, as before the closed form. (Bisecting
+        # only below the closed-form root, an upper estimate since the floor only raises the
+        # stop, was tried: it changed the chaotic rebounds of tests/limit_rollouts.random_limits
+        # at dt = 0.4 for the worse, so it is not used yet.)
+        def body(_, bracket):
+            good, bad = bracket
+            mid = 0.5 * (good + bad)
+            fine = excess(mid)[0] <= 0
+            return jnp.where(fine, mid, good), jnp.where(fine, bad, mid)
+
+        hi_fine = excess(hi)[0] <= 0
+        best, _ = jax.lax.fori_loop(0, POSITION_BISECTIONS, body, (lo, hi))
+        best = jnp.where(hi_fine, hi, best)
+        best_k = _braking_peak(p0, v0, a0, best, dt, A, delta)[1]
+    else:
+        # Snap down to the grid lo + i (hi - lo) 2^-POSITION_BISECTIONS, the values a bisection
+        # would return: rounding differences between compiled variants (jit, vmap) of the
+        # model then rarely change the result, and the exact check decides on grid values.
+        q = (hi - lo) * 2.0 ** -POSITION_BISECTIONS
+
+        def snap(y):
+            return jnp.where(y >= hi, hi, lo + jnp.floor(jnp.maximum(y - lo, 0.0) / jnp.where(q > 0, q, 1.0)) * q)
+
+        ulp = float(np.finfo(np.float32).eps) * jnp.maximum(jnp.abs(P), jnp.abs(p0))
+        x = snap(root)
+        best, best_k = lo, jnp.ones_like(lo)
+        for i in range(2):
+            g, k = excess(x)
+            fine = g <= 0
+            best, best_k = jnp.where(fine & (x >= best), x, best), jnp.where(fine & (x >= best), k, best_k)
+            # rare: the candidate failed by rounding; step down by a grid value or a Newton step
+            x = jnp.where(fine, x, snap(x - jnp.maximum(q, 2.0 * (g + 4.0 * ulp) / jnp.maximum(slope, 1e-30))))
+    exact = best
     # Prefer the grid-stop profile (reach P at rest-velocity on a decision step) when it is
     # feasible and not wider than the exact bound: it avoids overshoot-and-return motions.
-    _, k_stop = _braking_peak(p0, v0, a0, exact, dt, A, delta)
     n_full = jnp.maximum(jnp.ceil((exact + A) / delta) - 1.0, 0.0)
     grid = jnp.full_like(exact, jnp.inf)
     found = jnp.zeros(exact.shape, bool)
     for dk in (-1.0, 0.0, 1.0):
-        K = jnp.maximum(k_stop + dk, 2.0)
+        K = jnp.maximum(best_k + dk, 2.0)
         for dn in (0.0, -1.0):
-            x, feasible = _grid_stop_bound(p0, v0, a0, P, dt, A, delta, K, jnp.maximum(n_full + dn, 0.0))
-            grid = jnp.where(feasible & ~found, x, grid)
+            xg, feasible = _grid_stop_bound(p0, v0, a0, P, dt, A, delta, K, jnp.maximum(n_full + dn, 0.0))
+            grid = jnp.where(feasible & ~found, xg, grid)
             found = found | feasible
     # a grid-stop candidate counts only if the velocity-safe stop from it stays below P too
-    grid = jnp.where(found & ok(jnp.where(found, grid, lo)), grid, jnp.inf)
-    return jnp.maximum(jnp.minimum(exact, grid), lo)
+    use = found & (grid < exact)
+    use = use & (excess(jnp.where(use, grid, lo))[0] <= 0)
+    return jnp.maximum(jnp.where(use, grid, exact), lo)
 
 
 def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
@@ -376,14 +532,29 @@ def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
     return jnp.where(in_step_ok_at_zero, jnp.maximum(best, 0.0), jnp.minimum(a1_in_step, 0.0))
 
 
-def _tail_steps(limits: JointLimits, dt) -> int:
-    """Decision steps around a stop that :func:`_safe_stop_peak` simulates: enough for the
-    acceleration to swing from -A back to 0 (``A / (J dt)`` steps) plus margin. Static."""
+def _tail_steps(limits: JointLimits, dt) -> tuple[int, np.ndarray | None]:
+    """Static plan of the velocity-safe tail of :func:`_safe_stop_peak`.
+
+    Returns ``(steps, needs_tail)``: ``steps`` decision steps around a stop are simulated,
+    enough for the acceleration to swing from -A back to 0 (``A / (J dt)`` steps) plus margin;
+    ``needs_tail`` [n] bool marks the joints whose velocity floor can bind at all. It cannot
+    bind when ``A dt + A^2/(2J) + J dt^2/8 <= V``: from a state with ``v >= 0`` and ``a >= -A``
+    the lowest next acceleration (``>= -A``) followed by the fastest settling rise loses at most
+    ``A dt`` in that step and ``A^2/(2J) + J dt^2/8`` in the rise (the grid rise is never
+    steeper than ``J``), so the velocity stays above ``-V``. For traced limits or ``dt``
+    ``needs_tail`` is ``None`` (all joints simulate, assuming a jerk limit down to ``A / dt``)."""
     try:
-        ratio = float(np.max(np.asarray(limits.acc) / (np.asarray(limits.jerk) * float(dt))))
+        acc = np.asarray(limits.acc, np.float64)
+        jerk = np.asarray(limits.jerk, np.float64)
+        vel = np.asarray(limits.vel, np.float64)
+        dt = float(dt)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError, TypeError):
-        ratio = 2.0  # traced limits or dt: assume a jerk limit down to A / dt
-    return int(np.ceil(ratio)) + 3
+        return 5, None  # as for a jerk limit down to A / dt
+    ratio = float(np.max(acc / (jerk * dt)))
+    j = jerk * (1.0 - 1e-4)  # the per-step budget is a hair below J dt (float32 reserve)
+    drop = acc * dt + acc * acc / (2.0 * j) + j * dt * dt / 8.0
+    needs_tail = drop * (1.0 + 1e-3) > vel * (1.0 - MARGIN) * (1.0 - TAIL_VEL_MARGIN)
+    return int(np.ceil(ratio)) + 3, needs_tail
 
 
 class SafeRange(NamedTuple):
@@ -418,7 +589,7 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     p_tol = jnp.where(jnp.isfinite(p_tol), p_tol, 0.0)
     V = limits.vel * (1.0 - MARGIN)
     P_hi, P_lo = limits.pos_max - p_tol, limits.pos_min + p_tol
-    tail = _tail_steps(limits, dt)
+    tail, needs_tail = _tail_steps(limits, dt)
     reserve = 0.25 * p_tol
     # per-step jerk budget, pulled in by the float32 resolution of accelerations of size A so
     # that a1 - a0 rounded never exceeds J dt (matters when J dt << A)
@@ -432,11 +603,28 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     feasible = k_lo <= k_hi
     s_lo, s_hi = jnp.where(feasible, k_lo, j_lo), jnp.where(feasible, k_hi, j_hi)
 
-    def position_bound(P, p, v, a, lo, hi):
-        finite = jnp.isfinite(P)
-        bound = _position_upper_bound(jnp.where(finite, p, 0.0), v, a, jnp.where(finite, P, 0.0), reserve, V,
-                                      settle, dt, A, delta, lo, hi, iterations, tail)
+    def group_bound(P, p, v, a, lo, hi, idx, steps):
+        """Position bound of the joints ``idx`` (static), with ``steps`` simulated tail steps."""
+        def take(x):
+            return x if idx is None else x[..., idx]
+
+        Pg = take(P)
+        finite = jnp.isfinite(Pg)
+        bound = _position_upper_bound(jnp.where(finite, take(p), 0.0), take(v), take(a), jnp.where(finite, Pg, 0.0),
+                                      take(reserve), take(V), take(settle), dt, take(A), take(delta), take(lo),
+                                      take(hi), iterations, steps)
         return jnp.where(finite, bound, jnp.inf)
+
+    def position_bound(P, p, v, a, lo, hi):
+        # Joints whose velocity floor cannot bind skip the simulated tail (static split).
+        if needs_tail is None or needs_tail.all():
+            return group_bound(P, p, v, a, lo, hi, None, tail)
+        if not needs_tail.any():
+            return group_bound(P, p, v, a, lo, hi, None, 0)
+        fast, slow = np.flatnonzero(~needs_tail), np.flatnonzero(needs_tail)
+        both = jnp.concatenate([group_bound(P, p, v, a, lo, hi, fast, 0),
+                                group_bound(P, p, v, a, lo, hi, slow, tail)], axis=-1)
+        return both[..., np.argsort(np.concatenate([fast, slow]))]
 
     hi = jnp.minimum(k_hi, position_bound(P_hi, p, v, a, s_lo, s_hi))
     lo = jnp.maximum(k_lo, -position_bound(-P_lo, -p, -v, -a, -s_hi, -s_lo))
