@@ -61,7 +61,7 @@ class TrainConfig:
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
-    num_timesteps: int = 3_000_000
+    num_timesteps: int = 8_000_000
     learning_rate: float = 3e-4
     entropy_cost: float = 1e-3
     discounting: float = 0.99
