@@ -272,8 +272,7 @@ class PathTrackingEnv(Env):
         i = jnp.clip(jnp.searchsorted(cum, offsets, side="left") - 1, 0, cfg.substeps - 1)
         w = jnp.clip((offsets - cum[i]) / jnp.maximum(seg[i], 1e-12), 0.0, 1.0)
         points = executed[i] + w[:, None] * (executed[i + 1] - executed[i])
-        reference = S.point_at(path, s0 + offsets)
-        return length, R.weighted_deviation(reference, points, cfg.deviation_weights)
+        return length, S.deviation(path, s0, offsets, points, cfg.deviation_weights)
 
     # -- observation ------------------------------------------------------------------------
 

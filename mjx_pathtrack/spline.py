@@ -39,6 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from mjx_pathtrack.reward import weighted_deviation
+
 Array = jax.Array
 
 #: consecutive knots closer than this [rad] count as duplicates and are dropped
@@ -448,11 +450,7 @@ def deviation(path: Path, s0: Array, offsets: Array, points: Array,
     (plain L2 without ``weights [n]``). ``d_mean``/``d_max`` are the caller's mean/max over the
     valid samples.
     """
-    diff = point_at(path, s0 + offsets) - points
-    if weights is None:
-        return jnp.linalg.norm(diff, axis=-1)
-    w = jnp.asarray(weights, diff.dtype)
-    return jnp.linalg.norm(diff * w, axis=-1) * jnp.sqrt(w.shape[-1] / jnp.sum(w * w))
+    return weighted_deviation(point_at(path, s0 + offsets), points, weights)
 
 
 # ---------------------------------------------------------------------------------------------
