@@ -115,27 +115,25 @@ def test_import_errors(tmp_path, make, message):
     assert not (tmp_path / "iiwa" / "bad").exists()      # nothing written on error
 
 
+@pytest.mark.parametrize("name, content, message", [
+    ("x.txt", "1,2", "unsupported file type"),
+    ("bad.json", "{", "invalid JSON"),
+    ("cols.csv", "a,b\n1,2,3\n", r"cols.csv:2: 3 columns, header has 2"),
+    ("split.csv", "path,a\nx,1\ny,2\nx,3\n", "not consecutive"),
+    ("word.csv", "a,b\n1,zz\n", "non-numeric"),
+])
+def test_read_user_paths_errors(tmp_path, name, content, message):
+    (tmp_path / name).write_text(content)
+    with pytest.raises(D.DatasetError, match=message):
+        D.read_user_paths(tmp_path / name)
+
+
 def test_import_file_errors(tmp_path):
     with pytest.raises(D.DatasetError, match="no such file"):
         D.read_user_paths(tmp_path / "missing.npz")
-    (tmp_path / "x.txt").write_text("1,2")
-    with pytest.raises(D.DatasetError, match="unsupported file type"):
-        D.read_user_paths(tmp_path / "x.txt")
-    (tmp_path / "bad.json").write_text("{")
-    with pytest.raises(D.DatasetError, match="invalid JSON"):
-        D.read_user_paths(tmp_path / "bad.json")
     (tmp_path / "ragged.json").write_text(json.dumps([[[0.0] * 7, [0.1] * 6]]))
     with pytest.raises(D.DatasetError, match="not a numeric"):
         D.import_paths(tmp_path / "ragged.json", "iiwa", "r", root=tmp_path)
-    (tmp_path / "cols.csv").write_text("a,b\n1,2,3\n")
-    with pytest.raises(D.DatasetError, match=r"cols.csv:2: 3 columns, header has 2"):
-        D.read_user_paths(tmp_path / "cols.csv")
-    (tmp_path / "split.csv").write_text("path,a\nx,1\ny,2\nx,3\n")
-    with pytest.raises(D.DatasetError, match="not consecutive"):
-        D.read_user_paths(tmp_path / "split.csv")
-    (tmp_path / "word.csv").write_text("a,b\n1,zz\n")
-    with pytest.raises(D.DatasetError, match="non-numeric"):
-        D.read_user_paths(tmp_path / "word.csv")
     with pytest.raises(D.DatasetError, match="unknown robot 'ur5'"):
         D.import_paths(write_npz(tmp_path, iiwa_paths(1)), "ur5", "x", root=tmp_path)
     with pytest.raises(D.DatasetError, match="invalid kind"):
