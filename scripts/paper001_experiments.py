@@ -1,7 +1,7 @@
 """Paper 001 experiments on the velocity-maximisation task: Table II (trained vs optimal average
 velocity per decision frequency) and Table I (penalty baselines vs the safe action space).
 
-    python scripts/paper001_experiments.py --out runs/paper001            # all runs (~25 min, 2 CPU cores)
+    python scripts/paper001_experiments.py --out runs/paper001            # all runs (~22 min, 2 shared CPU cores)
     python scripts/paper001_experiments.py --out runs/paper001 --tables-only   # rebuild tables from reports
 
 Runs PPO (:mod:`mjx_pathtrack.tasks.velocity_max_train`) for ``mode="safe"`` at 10, 20, 120 and
@@ -26,7 +26,7 @@ from mjx_pathtrack.tasks import velocity_max as V
 from mjx_pathtrack.tasks import velocity_max_train as T
 
 #: env steps per run at each frequency (scaled by --budget-scale)
-BUDGET = {10: 300_000, 20: 400_000, 120: 1_200_000, 240: 1_800_000}
+BUDGET = {10: 150_000, 20: 200_000, 120: 600_000, 240: 900_000}
 #: Table I frequencies (paper 001)
 PENALTY_FREQUENCIES = (240, 20)
 #: paper 001 Table II (average velocity: random, trained, optimal) and Table I (avg velocity,
