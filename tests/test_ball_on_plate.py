@@ -44,7 +44,9 @@ def test_still_robot_keeps_the_ball_for_the_whole_episode(env, rollout):
     assert env.config.max_episode_steps() == 61  # 6 s at 0.1 s
     assert not fell[:, 0].any()
     assert np.flatnonzero(done[:, 0])[0] == int(state.pipeline_state.max_steps[0]) - 1 == 59  # time budget
-    assert np.all(np.abs(ball[:, 0, :2]) < 0.5 * np.asarray(BP.R.BALL_HALF_RANGE))
+    # servo sag under gravity leaves the plate ~1e-4 rad off level: the ball creeps by < 3 cm in 6 s
+    start = state.pipeline_state.executor.ball[0, :2]
+    assert np.linalg.norm(ball[:, 0, :2] - start, axis=-1).max() < 0.03
     assert np.all(np.isfinite(reward[:, 0]))
 
 

@@ -280,7 +280,7 @@ def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallCo
 PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", executor="mjx", n_next=4, alpha=4.0,
               beta=0.9, action_reward=0.0, duration=6.0, terminate_deviation=0.25, ball_reward=1.0,
               num_envs=128, batch_size=128, num_minibatches=4, unroll_length=10, num_updates_per_batch=4,
-              num_timesteps=500_000, num_evals=3, eval_episodes=128)
+              num_timesteps=300_000, num_evals=2, eval_episodes=64)
 
 
 def from_train_config(config, split: str = "train", evaluation: bool = False) -> BallOnPlateEnv:
