@@ -3,6 +3,7 @@
     python train.py                      # iiwa, random paths, CPU-sized default run
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
+    python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -18,11 +19,20 @@ import sys
 import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
 
 
+def task_presets() -> dict[str, dict]:
+    """``--task NAME`` -> TrainConfig defaults of that task (explicit flags still override them)."""
+    from mjx_pathtrack.tasks import ball_on_plate
+
+    return {"ball_on_plate": {**ball_on_plate.PRESET, "out": "runs/ball_on_plate"}}
+
+
 def parse_args(argv=None):
     from mjx_pathtrack.training import TrainConfig
 
     defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--no-ball-reward", action="store_true",
+                        help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default="runs/iiwa_random", help="run directory (config, logs, checkpoints)")
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
     parser.add_argument("--distributed", action="store_true",
@@ -40,7 +50,13 @@ def parse_args(argv=None):
             parser.add_argument(flag, default=None)
         else:
             parser.add_argument(flag, type=type(value), default=value)
+    task, _ = parser.parse_known_args(argv)
+    presets = task_presets()
+    if task.task in presets:
+        parser.set_defaults(**presets[task.task])
     args = parser.parse_args(argv)
+    if args.no_ball_reward:
+        args.ball_reward = 0.0
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
     values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
     return args, TrainConfig(**values)

@@ -31,6 +31,8 @@ from mjx_pathtrack.evaluation import make_evaluator, summarize
 from mjx_pathtrack.wrappers import wrap_for_training
 
 EXECUTORS = ("kinematic", "mjx")
+#: task variants (``TrainConfig.task``): plain path tracking or a sensory-feedback task (mjx_pathtrack.tasks)
+TASKS = ("tracking", "ball_on_plate")
 #: per-path-joint deviation weights of the papers' nets (REFERENCE §1.5)
 _IIWA_W = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
 _ARMAR4_W = (1.0, 1.0) + 2 * (1.0, 1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
@@ -78,6 +80,8 @@ class TrainConfig:
     init_noise_std: float = 0.5
     mean_init_scale: float = 0.01
     seed: int = 0
+    task: str = "tracking"
+    ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
 
     def env_config(self) -> EnvConfig:
         weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
@@ -101,6 +105,12 @@ class TrainConfig:
 
 def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
     """The environment over one dataset split (``train`` or ``test``) of a registry robot."""
+    if config.task not in TASKS:
+        raise ValueError(f"unknown task {config.task!r}; known: {', '.join(TASKS)}")
+    if config.task == "ball_on_plate":
+        from mjx_pathtrack.tasks.ball_on_plate import from_train_config
+
+        return from_train_config(config, split, evaluation=split == "test")
     robot = robots.load_robot(config.robot, dt=config.dt)
     meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
     paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
