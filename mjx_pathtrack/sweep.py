@@ -14,8 +14,9 @@ A sweep file (YAML) holds::
     test_datasets: [target_point]   # optional: also evaluate on the test split of these datasets
     eval_episodes: 64               # episodes per evaluation (default 64)
     eval_seed: 0                    # the same episodes (paths, sub-paths) for every point
-    vectorize: false                # train points that differ only in alpha/beta/action_reward/seed
-                                    # together in one vmapped program (mjx_pathtrack.batched_ppo)
+    vectorize: true                 # default: train points that differ only in alpha/beta/
+                                    # action_reward/seed together in one vmapped program
+                                    # (mjx_pathtrack.batched_ppo); false: one Brax PPO run each
     out: runs/sweeps/my_sweep       # optional default output directory
 
 Each point gets a run directory ``OUT/<field=value_...>`` (``config.json``, ``progress.csv``,
@@ -24,6 +25,14 @@ row per finished point: the swept values, the run directory, the training time a
 evaluation metrics (:func:`evaluate_group`). Re-running the same command skips finished points
 (a point whose ``sweep_metrics.json`` exists) and continues an interrupted sequential point from
 its last Brax checkpoint.
+
+Two trainers. *Vectorised* (default; ``benchmarks/bench_sweep.py`` measured it faster on CPU):
+the points of a group (equal in every field but ``alpha``, ``beta``, ``action_reward``,
+``seed``) are trained together by :mod:`mjx_pathtrack.batched_ppo`, one compilation for the
+group; its run directories have no Brax checkpoints, TensorBoard logs or before/after
+``report.json``, and an interrupted group is trained again from the start. *Sequential*
+(``vectorize: false`` / ``--sequential``): :func:`mjx_pathtrack.training.train` per point, the
+full run directory of ``train.py``. Both evaluate with the same code (:class:`Evaluation`).
 """
 
 from __future__ import annotations
@@ -73,7 +82,7 @@ class SweepSpec:
     test_datasets: tuple[str, ...] = ()
     eval_episodes: int = 64
     eval_seed: int = 0
-    vectorize: bool = False
+    vectorize: bool = True
     out: str | None = None
 
 
@@ -149,7 +158,7 @@ def parse_spec(data: Any, source: str = "sweep file") -> SweepSpec:
         tests = [tests]
     if not isinstance(tests, list) or not all(isinstance(t, str) and t for t in tests):
         raise SweepError(f"{source}: test_datasets must be a list of dataset names, got {tests!r}")
-    episodes, seed, vectorize = data.get("eval_episodes", 64), data.get("eval_seed", 0), data.get("vectorize", False)
+    episodes, seed, vectorize = data.get("eval_episodes", 64), data.get("eval_seed", 0), data.get("vectorize", True)
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise SweepError(f"{source}: eval_episodes must be a positive integer, got {episodes!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
@@ -441,11 +450,14 @@ def _train_vectorized(points: Sequence[Point], out: FsPath, verbose: bool):
                   + " ".join(f"{r['episode_return']:.1f}" for r in rows), flush=True)
 
     make_policy, params, seconds = batched_ppo.train_members(configs, progress=progress)
+    t0 = time.monotonic()
     test_env = make_env(configs[0], "test")
     joint_names = robots.load_robot(configs[0].robot, dt=configs[0].dt).joint_names
     for d, c, p in zip(dirs, configs, params):
         atomic_write_bytes(d / "params.pkl", pickle.dumps(p))
         export_policy(d / "export", make_policy, p, test_env, c.robot, joint_names)
+    if verbose:
+        print(f"  exported {len(points)} policies in {time.monotonic() - t0:.1f} s", flush=True)
     return params, seconds / len(points)
 
 
@@ -516,7 +528,11 @@ def run_sweep(spec: SweepSpec, out: str | FsPath, vectorize: bool | None = None,
             if verbose:
                 print(f"training {len(group)} points together: {', '.join(p.name for p in group)}", flush=True)
             params, seconds = _train_vectorized(group, out, verbose)
+            t0 = time.monotonic()
             metrics, episodes = evaluate_group(group, params, evaluation, spec)
+            if verbose:
+                print(f"  trained in {seconds * len(group):.1f} s, evaluated in {time.monotonic() - t0:.1f} s",
+                      flush=True)
             for p, m, e in zip(group, metrics, episodes):
                 _finish_point(out / p.name, p, "vmapped", seconds, m, e)
             write_summary(out, spec, points)
@@ -525,7 +541,10 @@ def run_sweep(spec: SweepSpec, out: str | FsPath, vectorize: bool | None = None,
             if verbose:
                 print(f"training point {p.name}", flush=True)
             params, seconds = _train_sequential(p, out / p.name, verbose)
+            t0 = time.monotonic()
             metrics, episodes = evaluate_group([p], [params], evaluation, spec)
+            if verbose:
+                print(f"  trained in {seconds:.1f} s, evaluated in {time.monotonic() - t0:.1f} s", flush=True)
             _finish_point(out / p.name, p, "brax", seconds, metrics[0], episodes[0])
             write_summary(out, spec, points)
     return write_summary(out, spec, points)
