@@ -68,6 +68,8 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=64)
     parser.add_argument("--num-timesteps", type=int, default=51_200)
     parser.add_argument("--skip-brax", action="store_true", help="skip the (slowest) Brax sequential way")
+    parser.add_argument("--brax-first", action="store_true",
+                        help="run the Brax way first (on a shared machine the load drifts: swap the order to see it)")
     args = parser.parse_args()
     base = TrainConfig(num_envs=args.num_envs, batch_size=args.num_envs, num_minibatches=4, unroll_length=10,
                        num_updates_per_batch=2, num_timesteps=args.num_timesteps, num_evals=2)
@@ -77,6 +79,9 @@ def main() -> None:
     print(f"device: {jax.devices()[0].platform}  points {args.points}  num_envs {args.num_envs}  "
           f"env steps per point {args.num_timesteps:,}")
 
+    brax_total = None
+    if args.brax_first and not args.skip_brax:
+        brax_total = sum(brax_train(c, env) for c in configs)
     program = B.build(base, env)
     vmapped_first, vmapped_again = timed_members(program, configs)
     one = B.build(base, env)
@@ -89,10 +94,11 @@ def main() -> None:
           f"   ratio sequential/vmapped: {seq_first / vmapped_first:.2f} incl. compile, "
           f"{seq_again / vmapped_again:.2f} compiled")
     if not args.skip_brax:
-        brax_total = sum(brax_train(c, env) for c in configs)
+        if brax_total is None:
+            brax_total = sum(brax_train(c, env) for c in configs)
         print(f"brax ppo.train, one point after another: {brax_total:8.1f} s incl. compile "
               f"({steps / brax_total:9,.0f} env-steps/s)   ratio brax-sequential/vmapped: "
-              f"{brax_total / vmapped_first:.2f}")
+              f"{brax_total / vmapped_first:.2f}{'  (brax ran first)' if args.brax_first else ''}")
 
 
 if __name__ == "__main__":
