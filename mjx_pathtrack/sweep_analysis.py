@@ -115,17 +115,19 @@ def _label(summary, i: int, fields: Sequence[str]) -> str:
 
 
 def tradeoff_table(summary: dict[str, np.ndarray]) -> Table:
-    """Table II: every point's duration, mean/max deviation, end-reached rate and return, sorted
-    by duration, with its Pareto-front membership (duration vs mean deviation)."""
+    """Table II: every point's duration, mean/max deviation, end-reached rate, arc progress and
+    return, sorted by duration, with its Pareto-front membership (duration vs mean deviation)."""
     fields = swept_fields(summary)
     dur, dev = _col(summary, "stop_time_s"), _col(summary, "mean_deviation")
     front = pareto_front(dur, dev)
     order = np.lexsort((dev, np.where(np.isfinite(dur), dur, np.inf)))
+    progress = summary.get("progress", np.full(len(dur), np.nan))
     rows = [[_label(summary, i, fields), dur[i], dev[i], summary["max_deviation"][i], summary["end_reached"][i],
-             summary["return"][i], bool(front[i])] for i in order]
-    note = "" if front.any() else "No point has both a duration and a deviation (no evaluation episode stopped at the end): no Pareto front."
+             progress[i], summary["return"][i], bool(front[i])] for i in order]
+    note = "" if front.any() else ("No point has both a duration and a deviation (no evaluation episode stopped at "
+                                   "the end): no Pareto front. The arc progress column shows how far they got.")
     return Table("Table II: duration vs deviation", ["point", "duration [s]", "mean dev [rad]", "max dev [rad]",
-                                                     "end reached", "return", "Pareto"], rows, note)
+                                                     "end reached", "progress", "return", "Pareto"], rows, note)
 
 
 def _mean_by(summary, key: str, columns: Sequence[str]) -> list[list]:
@@ -236,8 +238,9 @@ def load_episode(run_dir: str | FsPath) -> dict[str, np.ndarray]:
 
 
 def plot_episode(episode: dict[str, np.ndarray], title: str = ""):
-    """Joint positions [rad] at every executed sub-step, and velocity / acceleration at the
-    decision instants normalised by their limits, against time [s]. Returns the figure."""
+    """Joint positions [rad] at every executed sub-step (start included), and velocity /
+    acceleration at the decision instants (from rest at t = 0) normalised by their limits, against
+    time [s]. Returns the figure."""
     import matplotlib.pyplot as plt
 
     dt = float(episode["dt"])
@@ -249,11 +252,13 @@ def plot_episode(episode: dict[str, np.ndarray], title: str = ""):
         return fig
     t_sub = (np.arange(T)[:, None] + np.arange(1, S1)[None] / (S1 - 1)).reshape(-1) * dt
     q = exe[:, 1:].reshape(-1, n)
-    t_dec = dt * np.arange(1, T + 1)
+    t_dec = dt * np.arange(T + 1)  # episodes start at rest: v = a = 0 at t = 0
+    v = np.concatenate([np.zeros((1, n)), episode["v"]])
+    a = np.concatenate([np.zeros((1, n)), episode["a"]])
     for j in range(n):
-        axes[0].plot(t_sub, q[:, j], label=f"joint {j + 1}")
-        axes[1].plot(t_dec, episode["v"][:, j] / episode["vel"][j])
-        axes[2].plot(t_dec, episode["a"][:, j] / episode["acc"][j])
+        axes[0].plot(np.concatenate([[0.0], t_sub]), np.concatenate([exe[0, :1, j], q[:, j]]), label=f"joint {j + 1}")
+        axes[1].plot(t_dec, v[:, j] / episode["vel"][j])
+        axes[2].plot(t_dec, a[:, j] / episode["acc"][j])
     axes[0].set_ylabel("position [rad]")
     axes[1].set_ylabel("v / v_max")
     axes[2].set_ylabel("a / a_max")

@@ -99,5 +99,7 @@ def test_plots_draw_points_front_and_joints(tmp_path):
     episode = {"dt": np.float64(0.1), "executed": np.zeros((T, 25, n)), "v": np.ones((T, n)), "a": np.zeros((T, n)),
                "vel": 2 * np.ones(n), "acc": np.ones(n), "path_index": np.int64(4)}
     fig = A.plot_episode(episode)
-    assert len(fig.axes[0].get_lines()) == n and np.allclose(fig.axes[1].get_lines()[0].get_ydata(), 0.5)
-    assert fig.axes[0].get_lines()[0].get_xdata()[-1] == pytest.approx(0.3)
+    velocity = fig.axes[1].get_lines()[0].get_ydata()
+    assert len(fig.axes[0].get_lines()) == n and velocity[0] == 0.0 and np.allclose(velocity[1:], 0.5)
+    positions_t = fig.axes[0].get_lines()[0].get_xdata()
+    assert positions_t[0] == 0.0 and positions_t[-1] == pytest.approx(0.3) and len(positions_t) == 1 + 3 * 24
