@@ -267,7 +267,9 @@ class Evaluation:
 
             @jax.jit
             def run(params, weights, rng):
-                def one(p, w):  # E.evaluate's episodes, recording the steps to keep episode 0
+                # E.evaluate's episodes (same keys), through its scan E._run with recording on, so that
+                # episode 0's trajectory and the in-step limit ratios come from the same rollout
+                def one(p, w):
                     member_env = batched_ppo.with_reward_weights(env, w[0], w[1], w[2])
                     reset_keys = jax.random.split(rng, n + 1)
                     state = jax.vmap(member_env.reset)(reset_keys[1:])
