@@ -4,6 +4,7 @@
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
     python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
+    python train.py --sweep sweep.yaml [--out DIR]  # a grid of runs + summary.csv (mjx_pathtrack.sweep)
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -33,7 +34,12 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
-    parser.add_argument("--out", default="runs/iiwa_random", help="run directory (config, logs, checkpoints)")
+    parser.add_argument("--out", default=None,
+                        help="run directory (config, logs, checkpoints; default runs/iiwa_random), or with "
+                             "--sweep the sweep's output directory")
+    parser.add_argument("--sweep", default=None, metavar="FILE",
+                        help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweep.py); the training "
+                             "flags below are then ignored: put them in the file's 'base'")
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
     parser.add_argument("--distributed", action="store_true",
                         help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
@@ -64,6 +70,11 @@ def parse_args(argv=None):
 
 def main(argv=None) -> int:
     args, config = parse_args(argv)
+    if args.sweep:
+        from mjx_pathtrack import sweep
+
+        return sweep.main([args.sweep] + (["--out", args.out] if args.out else []))
+    args.out = args.out or "runs/iiwa_random"
     import jax
 
     if args.distributed:

@@ -1,0 +1,105 @@
+"""Sweep training: K points one after another vs together in one vmapped program.
+
+Run: python benchmarks/bench_sweep.py [--points 4] [--num-envs 64] [--num-timesteps 51200] [--skip-brax]
+
+The K points differ only in reward weight alpha and seed (what ``sweep.py`` may vectorise). All
+three ways train every point for the same number of env steps with the same PPO settings, in
+one process, compilation included (as a sweep pays it):
+
+* ``brax``: ``brax.training.agents.ppo.train`` once per point (the sequential sweep's trainer,
+  without its evaluations and checkpoints); every call compiles again;
+* ``batched K=1``: :mod:`mjx_pathtrack.batched_ppo` with one member, compiled once and called
+  per point (alpha and seed are arguments, not constants);
+* ``vmapped``: :mod:`mjx_pathtrack.batched_ppo` with all K members in one program.
+
+For the two batched ways it also prints the steady-state time (a second call, compiled). The
+ratios printed are sequential time / vmapped time (> 1: vmapped is faster).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import mjx_pathtrack  # noqa: F401
+import jax
+import jax.numpy as jnp
+
+from mjx_pathtrack import batched_ppo as B
+from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks
+from mjx_pathtrack.wrappers import wrap_for_training
+
+
+def brax_train(config: TrainConfig, env) -> float:
+    from brax.training.agents.ppo import train as ppo
+
+    t0 = time.perf_counter()
+    _, params, _ = ppo.train(
+        environment=env, wrap_env_fn=wrap_for_training, num_timesteps=config.num_timesteps,
+        episode_length=config.env_config().max_episode_steps() + 1, num_envs=config.num_envs,
+        learning_rate=config.learning_rate, entropy_cost=config.entropy_cost, discounting=config.discounting,
+        gae_lambda=config.gae_lambda, clipping_epsilon=config.clipping_epsilon, unroll_length=config.unroll_length,
+        batch_size=config.batch_size, num_minibatches=config.num_minibatches,
+        num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals, run_evals=False,
+        normalize_observations=True, network_factory=ppo_networks(config), seed=config.seed)
+    jax.block_until_ready(params)
+    return time.perf_counter() - t0
+
+
+def timed_members(program: B.BatchedPPO, configs) -> tuple[float, float]:
+    """(first call incl. compilation, second call) wall times [s] of training ``configs`` together."""
+    members = B.Members.of(configs)
+    weights = B.member_weights(members)
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        state = program.init(jnp.asarray(members.seed), weights)
+        for _ in range(program.epochs):
+            state, _ = program.epoch(state, weights)
+        jax.block_until_ready(state.params)
+        times.append(time.perf_counter() - t0)
+    return times[0], times[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--points", type=int, default=4)
+    parser.add_argument("--num-envs", type=int, default=64)
+    parser.add_argument("--num-timesteps", type=int, default=51_200)
+    parser.add_argument("--skip-brax", action="store_true", help="skip the (slowest) Brax sequential way")
+    parser.add_argument("--brax-first", action="store_true",
+                        help="run the Brax way first (on a shared machine the load drifts: swap the order to see it)")
+    args = parser.parse_args()
+    base = TrainConfig(num_envs=args.num_envs, batch_size=args.num_envs, num_minibatches=4, unroll_length=10,
+                       num_updates_per_batch=2, num_timesteps=args.num_timesteps, num_evals=2)
+    configs = [dataclasses.replace(base, alpha=1.0 + (i % 2), seed=i // 2) for i in range(args.points)]
+    env = make_env(base, "train")
+    steps = args.points * args.num_timesteps
+    print(f"device: {jax.devices()[0].platform}  points {args.points}  num_envs {args.num_envs}  "
+          f"env steps per point {args.num_timesteps:,}")
+
+    brax_total = None
+    if args.brax_first and not args.skip_brax:
+        brax_total = sum(brax_train(c, env) for c in configs)
+    program = B.build(base, env)
+    vmapped_first, vmapped_again = timed_members(program, configs)
+    one = B.build(base, env)
+    first, again = zip(*(timed_members(one, [c]) for c in configs))
+    seq_first, seq_again = sum(first), sum(again)
+    print(f"vmapped (1 program, {args.points} members): {vmapped_first:8.1f} s incl. compile "
+          f"({steps / vmapped_first:9,.0f} env-steps/s), {vmapped_again:8.1f} s compiled "
+          f"({steps / vmapped_again:9,.0f} env-steps/s)")
+    print(f"batched K=1, one point after another  : {seq_first:8.1f} s incl. compile, {seq_again:8.1f} s compiled"
+          f"   ratio sequential/vmapped: {seq_first / vmapped_first:.2f} incl. compile, "
+          f"{seq_again / vmapped_again:.2f} compiled")
+    if not args.skip_brax:
+        if brax_total is None:
+            brax_total = sum(brax_train(c, env) for c in configs)
+        print(f"brax ppo.train, one point after another: {brax_total:8.1f} s incl. compile "
+              f"({steps / brax_total:9,.0f} env-steps/s)   ratio brax-sequential/vmapped: "
+              f"{brax_total / vmapped_first:.2f}{'  (brax ran first)' if args.brax_first else ''}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,272 @@
+"""Analysis of a sweep directory (:mod:`mjx_pathtrack.sweep`): the tables of paper 000 and plots.
+
+The notebook ``notebooks/tradeoff_sweeps.ipynb`` is a thin front end to these functions:
+
+* :func:`load_summary` reads ``summary.csv`` into columns (NumPy arrays; strings stay strings);
+* :func:`pareto_front` marks the points no other point beats in both duration and deviation;
+* :func:`tradeoff_table` (Table II), :func:`knots_table` (Table III), :func:`generalization_table`
+  (Table IV), :func:`toppra_table` (Table VI) return :class:`Table` objects (rows + Markdown);
+* :func:`plot_tradeoff` (duration vs mean deviation with the Pareto front) and
+  :func:`plot_episode` (one evaluation episode's joint trajectories, ``episode0.npz``).
+
+Durations are the mean time [s] until the robot stopped after reaching the end of the path (over
+the evaluation episodes that did); deviations are joint-space [rad] (the paper's tables give
+Cartesian ones). Missing values (no episode stopped, no TOPP-RA baseline) are NaN.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path as FsPath
+from typing import Sequence
+
+import numpy as np
+
+#: paper 000 Table VI: TOPP-RA / policy duration [%] (iiwa, random paths)
+PAPER_TOPPRA_PERCENT = {"iiwa": 78.5}
+
+
+class AnalysisError(ValueError):
+    """A sweep directory or column the analysis needs is missing; the message says which."""
+
+
+def load_summary(sweep_dir: str | FsPath) -> dict[str, np.ndarray]:
+    """Columns of ``sweep_dir/summary.csv``: numeric columns as float arrays (empty cells NaN),
+    others as string arrays; plus ``sweep_dir`` itself under the key ``"_dir"`` (a string)."""
+    file = FsPath(sweep_dir) / "summary.csv"
+    if not file.is_file():
+        raise AnalysisError(f"no summary.csv in {sweep_dir} (run the sweep first: python train.py --sweep FILE)")
+    with open(file, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise AnalysisError(f"{file} has no finished points yet")
+    out: dict[str, np.ndarray] = {}
+    for key in rows[0]:
+        values = [r[key] for r in rows]
+        try:
+            out[key] = np.array([float(v) if v != "" else np.nan for v in values])
+        except ValueError:
+            out[key] = np.array(values)
+    out["_dir"] = np.array(str(sweep_dir))
+    return out
+
+
+def _sweep_meta(summary: dict[str, np.ndarray]) -> dict:
+    meta = FsPath(str(summary["_dir"])) / "sweep.json"
+    return json.loads(meta.read_text()) if meta.is_file() else {}
+
+
+def swept_fields(summary: dict[str, np.ndarray]) -> list[str]:
+    """The grid fields of the sweep (from ``sweep.json``), in file order."""
+    return [k for k in _sweep_meta(summary).get("grid", {}) if k in summary]
+
+
+def pareto_front(duration: np.ndarray, deviation: np.ndarray) -> np.ndarray:
+    """Bool ``[P]``: point i is on the front if it has finite values and no other point is at least
+    as good in both (lower duration and lower deviation) and better in one."""
+    d, e = np.asarray(duration, float), np.asarray(deviation, float)
+    ok = np.isfinite(d) & np.isfinite(e)
+    front = ok.copy()
+    for i in np.flatnonzero(ok):
+        dominated = ok & (d <= d[i]) & (e <= e[i]) & ((d < d[i]) | (e < e[i]))
+        front[i] = not dominated.any()
+    return front
+
+
+@dataclasses.dataclass
+class Table:
+    """A result table: ``title``, ``columns``, ``rows`` (lists of cells), an optional ``note``."""
+
+    title: str
+    columns: list[str]
+    rows: list[list]
+    note: str = ""
+
+    def markdown(self) -> str:
+        lines = [f"**{self.title}**", "", "| " + " | ".join(self.columns) + " |",
+                 "|" + "---|" * len(self.columns)]
+        lines += ["| " + " | ".join(_fmt(c) for c in r) + " |" for r in self.rows]
+        if self.note:
+            lines += ["", self.note]
+        return "\n".join(lines)
+
+    def _repr_markdown_(self) -> str:  # Jupyter shows it as a table
+        return self.markdown()
+
+
+def _fmt(x) -> str:
+    if isinstance(x, (float, np.floating)):
+        return "–" if not np.isfinite(x) else f"{x:.3g}" if abs(x) < 1000 else f"{x:,.0f}"
+    if isinstance(x, (bool, np.bool_)):
+        return "yes" if x else ""
+    return str(x)
+
+
+def _col(summary, key: str) -> np.ndarray:
+    if key not in summary:
+        raise AnalysisError(f"summary.csv has no column {key!r}")
+    return summary[key]
+
+
+def _label(summary, i: int, fields: Sequence[str]) -> str:
+    return ", ".join(f"{k}={_fmt(summary[k][i])}" for k in fields) or str(summary["point"][i])
+
+
+def tradeoff_table(summary: dict[str, np.ndarray]) -> Table:
+    """Table II: every point's duration, mean/max deviation, end-reached rate, arc progress and
+    return, sorted by duration, with its Pareto-front membership (duration vs mean deviation)."""
+    fields = swept_fields(summary)
+    dur, dev = _col(summary, "stop_time_s"), _col(summary, "mean_deviation")
+    front = pareto_front(dur, dev)
+    order = np.lexsort((dev, np.where(np.isfinite(dur), dur, np.inf)))
+    progress = summary.get("progress", np.full(len(dur), np.nan))
+    rows = [[_label(summary, i, fields), dur[i], dev[i], summary["max_deviation"][i], summary["end_reached"][i],
+             progress[i], summary["return"][i], bool(front[i])] for i in order]
+    note = "" if front.any() else ("No point has both a duration and a deviation (no evaluation episode stopped at "
+                                   "the end): no Pareto front. The arc progress column shows how far they got.")
+    return Table("Table II: duration vs deviation", ["point", "duration [s]", "mean dev [rad]", "max dev [rad]",
+                                                     "end reached", "progress", "return", "Pareto"], rows, note)
+
+
+def _mean_by(summary, key: str, columns: Sequence[str]) -> list[list]:
+    values = _col(summary, key)
+    rows = []
+    for v in sorted(set(values.tolist())):
+        sel = values == v
+        rows.append([v, int(sel.sum())] + [_nanmean(summary[c][sel]) for c in columns])
+    return rows
+
+
+def _nanmean(x: np.ndarray) -> float:
+    x = np.asarray(x, float)
+    return float(np.nanmean(x)) if np.isfinite(x).any() else float("nan")
+
+
+def knots_table(summary: dict[str, np.ndarray]) -> Table:
+    """Table III: duration and deviation per number of knots N (``n_next``), averaged over the
+    other swept values."""
+    if "n_next" not in summary:
+        raise AnalysisError("the sweep does not vary n_next (add it to the grid for Table III)")
+    cols = ["stop_time_s", "mean_deviation", "max_deviation", "end_reached"]
+    return Table("Table III: knots N in the observation", ["N", "points", "duration [s]", "mean dev [rad]",
+                                                           "max dev [rad]", "end reached"],
+                 _mean_by(summary, "n_next", cols))
+
+
+def generalization_table(summary: dict[str, np.ndarray], test_dataset: str = "target_point") -> Table:
+    """Table IV: per training dataset, the metrics on its own test split and on ``test_dataset``'s
+    (columns ``on_<test_dataset>_*``), averaged over the points trained on it."""
+    prefix = f"on_{test_dataset}_"
+    if not any(k.startswith(prefix) for k in summary):
+        from mjx_pathtrack import datasets
+
+        base = _sweep_meta(summary).get("base", {})
+        robot, root = base.get("robot", "iiwa"), base.get("dataset_root")
+        where = datasets.dataset_dir(robot, test_dataset, root)
+        if not (where / "test.npz").is_file():
+            raise AnalysisError(f"the {test_dataset!r} dataset does not exist yet ({where}/test.npz missing): "
+                                f"generate it with python -m mjx_pathtrack.datasets generate --robot {robot} "
+                                f"--kind {test_dataset}, then re-run the sweep with 'test_datasets: [{test_dataset}]'")
+        raise AnalysisError(f"no results on the {test_dataset!r} dataset in this sweep: add "
+                            f"'test_datasets: [{test_dataset}]' to the sweep file and re-run it")
+    trained = summary["dataset"] if "dataset" in summary else None
+    names = sorted(set(trained.tolist())) if trained is not None else [None]
+    metrics = ["stop_time_s", "mean_deviation", "max_deviation", "end_reached", "success"]
+    rows = []
+    for name in names:
+        sel = np.ones(len(summary["point"]), bool) if name is None else trained == name
+        label = "training dataset" if name is None else name
+        rows.append([f"{label} → own test split", int(sel.sum())] + [_nanmean(summary[m][sel]) for m in metrics])
+        if name != test_dataset:
+            rows.append([f"{label} → {test_dataset}", int(sel.sum())]
+                        + [_nanmean(summary[prefix + m][sel]) for m in metrics])
+    return Table(f"Table IV: generalisation to {test_dataset}", ["trained → tested", "points", "duration [s]",
+                                                               "mean dev [rad]", "max dev [rad]", "end reached",
+                                                               "success"], rows)
+
+
+def toppra_table(summary: dict[str, np.ndarray], robot: str = "iiwa") -> Table:
+    """Table VI: per point, the policy's duration, the TOPP-RA duration of the same sub-paths, the
+    policy/TOPP-RA ratio (episodes that stopped) and TOPP-RA's share of the policy's time [%]."""
+    fields = swept_fields(summary)
+    ratio = _col(summary, "ratio_to_toppra")
+    rows = [[_label(summary, i, fields), summary["stop_time_s"][i], summary["toppra_duration_s"][i], ratio[i],
+             100.0 / ratio[i] if np.isfinite(ratio[i]) and ratio[i] > 0 else float("nan")]
+            for i in range(len(ratio))]
+    paper = PAPER_TOPPRA_PERCENT.get(robot)
+    note = f"Paper 000 Table VI ({robot}, random paths): TOPP-RA needs {paper} % of the policy's time." if paper else ""
+    return Table("Table VI: policy vs TOPP-RA (velocity/acceleration limits only)",
+                 ["point", "policy duration [s]", "TOPP-RA duration [s]", "ratio policy/TOPP-RA", "TOPP-RA / policy [%]"],
+                 rows, note)
+
+
+def plot_tradeoff(summary: dict[str, np.ndarray], ax=None):
+    """Scatter of duration [s] vs mean deviation [rad] per point, Pareto front as a line."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 4))
+    fields = swept_fields(summary)
+    dur, dev = summary["stop_time_s"], summary["mean_deviation"]
+    ok = np.isfinite(dur) & np.isfinite(dev)
+    ax.scatter(dur[ok], dev[ok], c="tab:blue", label="points")
+    for i in np.flatnonzero(ok):
+        ax.annotate(_label(summary, i, fields), (dur[i], dev[i]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    front = pareto_front(dur, dev)
+    if front.any():
+        order = np.argsort(dur[front])
+        ax.plot(dur[front][order], dev[front][order], "-o", c="tab:red", label="Pareto front")
+    if not ok.any():
+        ax.text(0.5, 0.5, "no point stopped at the end in evaluation", ha="center", va="center",
+                transform=ax.transAxes)
+    ax.set_xlabel("duration until stopped [s]")
+    ax.set_ylabel("mean joint deviation [rad]")
+    if ok.any():
+        ax.legend(loc="best")
+    return ax
+
+
+def load_episode(run_dir: str | FsPath) -> dict[str, np.ndarray]:
+    """The recorded evaluation episode 0 of a point (``episode0.npz``)."""
+    file = FsPath(run_dir) / "episode0.npz"
+    if not file.is_file():
+        raise AnalysisError(f"no episode0.npz in {run_dir} (the point is not finished)")
+    with np.load(file) as data:
+        return {k: data[k] for k in data.files}
+
+
+def plot_episode(episode: dict[str, np.ndarray], title: str = ""):
+    """Joint positions [rad] at every executed sub-step (start included), and velocity /
+    acceleration at the decision instants (from rest at t = 0) normalised by their limits, against
+    time [s]. Returns the figure."""
+    import matplotlib.pyplot as plt
+
+    dt = float(episode["dt"])
+    exe = episode["executed"]  # [T, S+1, n]
+    T, S1, n = exe.shape
+    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    if T == 0:
+        axes[0].text(0.5, 0.5, "empty episode", ha="center", transform=axes[0].transAxes)
+        return fig
+    t_sub = (np.arange(T)[:, None] + np.arange(1, S1)[None] / (S1 - 1)).reshape(-1) * dt
+    q = exe[:, 1:].reshape(-1, n)
+    t_dec = dt * np.arange(T + 1)  # episodes start at rest: v = a = 0 at t = 0
+    v = np.concatenate([np.zeros((1, n)), episode["v"]])
+    a = np.concatenate([np.zeros((1, n)), episode["a"]])
+    for j in range(n):
+        axes[0].plot(np.concatenate([[0.0], t_sub]), np.concatenate([exe[0, :1, j], q[:, j]]), label=f"joint {j + 1}")
+        axes[1].plot(t_dec, v[:, j] / episode["vel"][j])
+        axes[2].plot(t_dec, a[:, j] / episode["acc"][j])
+    axes[0].set_ylabel("position [rad]")
+    axes[1].set_ylabel("v / v_max")
+    axes[2].set_ylabel("a / a_max")
+    for ax in axes[1:]:
+        ax.axhline(1, c="k", lw=0.5, ls="--")
+        ax.axhline(-1, c="k", lw=0.5, ls="--")
+    axes[2].set_xlabel("time [s]")
+    axes[0].legend(ncol=4, fontsize=7)
+    fig.suptitle(title or f"evaluation episode 0 (dataset path {int(episode['path_index'])})")
+    fig.tight_layout()
+    return fig
