@@ -129,21 +129,23 @@ def random_chunks(limits: L.JointLimits, key: Array, p: Array, v: Array, a: Arra
     fastest safe stop for ``brake_steps``. Returns ``(q [B, steps*substeps, n], end state
     (p, v, a), q_stop [B, brake_steps*substeps, n], stop end state (p, v, a), stopped [B])``."""
 
-    def act(state, k):
+    def body(state, x):
+        k, random_step = x
         p, v, a = state
         a_min, a_max = L.safe_acceleration_range(limits, p, v, a, dt)
         u = jax.vmap(lambda kk: jax.random.uniform(kk, p.shape[-1:], minval=-1.0, maxval=1.0))(k)
-        q, state = _step(limits, p, v, a, L.action_to_acceleration(u, a_min, a_max), dt, substeps)
-        return state, q
+        stop = L.braking_acceleration(limits, p, v, a, dt, (a_min, a_max))
+        a1 = jnp.where(random_step, L.action_to_acceleration(u, a_min, a_max), stop)
+        q, state = _step(limits, p, v, a, a1, dt, substeps)
+        return state, (q, state)
 
-    def brake(state, _):
-        p, v, a = state
-        q, state = _step(limits, p, v, a, L.braking_acceleration(limits, p, v, a, dt), dt, substeps)
-        return state, q
-
-    keys = jax.vmap(lambda k: jax.random.split(k, steps))(key)       # [B, steps, 2]
-    end, q = jax.lax.scan(act, (p, v, a), jnp.moveaxis(keys, 1, 0))
-    last, q_stop = jax.lax.scan(brake, end, None, length=brake_steps)
+    # one scan (random steps, then the stop): a single safe-range instance to compile
+    keys = jax.vmap(lambda k: jax.random.split(k, steps))(key)                     # [B, steps, 2]
+    keys = jnp.concatenate([keys, jnp.zeros((key.shape[0], brake_steps) + keys.shape[2:], keys.dtype)], axis=1)
+    flags = jnp.arange(steps + brake_steps) < steps
+    last, (q_all, states) = jax.lax.scan(body, (p, v, a), (jnp.moveaxis(keys, 1, 0), flags))
+    end = jax.tree.map(lambda x: x[steps - 1], states)
+    q, q_stop = q_all[:steps], q_all[steps:]
     stopped = jnp.all((jnp.abs(last[1]) <= REACH_VEL) & (jnp.abs(last[2]) <= REACH_VEL), axis=-1)
     flat = lambda x: jnp.moveaxis(x, 0, 1).reshape(p.shape[0], -1, p.shape[-1])  # noqa: E731
     return flat(q), end, flat(q_stop), last, stopped
