@@ -22,6 +22,12 @@ def _inside(robot, q):
     return np.all(q >= lo - 1e-6) and np.all(q <= hi + 1e-6)
 
 
+def _continuous(robot, motion):
+    """240 Hz setpoints from the start on: no jump larger than the velocity limit allows."""
+    step = np.max(np.abs(np.diff(motion, axis=0)), axis=0)
+    assert np.all(step <= np.asarray(robot.limits.vel) / 240.0 * 1.001), step
+
+
 def test_goal_seeking_motion_reaches_the_goal_at_rest_without_overshoot(iiwa):
     p0 = np.array([[0.0, 0.5, -1.0, 1.2, 0.3, -1.5, 2.5], [-2.5, -1.0, 2.0, -1.8, 2.5, 1.8, -2.8]])
     goal = np.array([[2.0, -1.0, 1.5, -0.5, -2.0, 1.0, -2.0], [-2.4, -0.9, 2.1, -1.9, 2.4, 1.9, -2.9]])
@@ -57,6 +63,7 @@ def test_target_point_paths_are_deterministic_inside_limits_and_collision_free(i
         assert _inside(iiwa, knots) and _inside(iiwa, motion)
         assert not np.any(robots.in_collision(iiwa, motion))
         assert not np.any(robots.in_collision(iiwa, knots))
+        _continuous(iiwa, motion)
 
 
 def test_target_point_goals_reach_their_cartesian_targets(iiwa, target_paths):
@@ -81,4 +88,5 @@ def test_safe_random_agent_avoids_a_forbidden_region(iiwa):
         np.testing.assert_array_equal(x, y)
     for m in motions:
         assert not forbidden(m).any() and _inside(iiwa, m)
+        _continuous(iiwa, m)
         assert len(m) >= 10 * 24  # at least the requested decision steps of setpoints
