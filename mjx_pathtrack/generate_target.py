@@ -262,7 +262,7 @@ def target_point_paths(robot, n_paths: int, seed: int, steps: int = 100, dt: flo
             raise RuntimeError(f"{int(np.sum(used < steps))} of {n_paths} target-point paths unfinished after "
                                f"{max_rounds} rounds (unreachable or colliding targets?)")
     motions = [np.concatenate(s) for s in segments]
-    paths = _resample(motions, path_joints, resampling_distance, curvature_distance)
+    paths = _resample(motions, path_joints, resampling_distance, curvature_distance, limits)
     return TargetPointResult(paths, motions, [np.array(g) for g in goals], [np.array(t) for t in targets])
 
 
@@ -317,9 +317,13 @@ def safe_random_paths(robot, n_paths: int, seed: int, steps: int = 80, dt: float
             raise RuntimeError(f"{int(np.sum(used < steps))} of {n_paths} random paths unfinished after "
                                f"{max_rounds} rounds")
     motions = [np.concatenate(s) for s in segments]
-    return _resample(motions, path_joints, resampling_distance, curvature_distance), motions
+    return _resample(motions, path_joints, resampling_distance, curvature_distance, limits), motions
 
 
-def _resample(motions, path_joints, distance, curvature_distance) -> list[np.ndarray]:
+def _resample(motions, path_joints, distance, curvature_distance, limits) -> list[np.ndarray]:
+    """Curvature-resampled knots of the path joints, clipped into the position limits: the
+    resampled spline can overshoot a stop next to a limit by up to ~1e-3 rad."""
     cols = slice(None) if path_joints is None else np.asarray(path_joints)
-    return [spline.resample(m[:, cols], distance=distance, curvature_distance=curvature_distance) for m in motions]
+    lo, hi = np.asarray(limits.pos_min, np.float64)[cols], np.asarray(limits.pos_max, np.float64)[cols]
+    return [np.clip(spline.resample(m[:, cols], distance=distance, curvature_distance=curvature_distance), lo, hi)
+            for m in motions]
