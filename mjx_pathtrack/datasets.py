@@ -375,7 +375,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_imp.add_argument("--split", default="test", choices=SPLITS)
     p_imp.add_argument("--root", default=None)
     p_imp.add_argument("--overwrite", action="store_true")
-    p_gen = sub.add_parser("generate", help="generate a dataset (random safe motions, curvature resampled)")
+    p_gen = sub.add_parser("generate", help="generate a dataset (kinds: see generate.KINDS, e.g. random, target_point)")
     p_gen.add_argument("--robot", default="iiwa", choices=known_robots())
     p_gen.add_argument("--kind", default="random")
     p_gen.add_argument("--num-train", type=int, default=200)

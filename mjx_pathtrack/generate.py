@@ -1,4 +1,5 @@
-"""Dataset generation: reference paths recorded from random safe motions (REFERENCE §4.4).
+"""Dataset generation: reference paths recorded from random safe motions (REFERENCE §4.4), and
+the registry of dataset kinds (:data:`KINDS`: ``random``, ``target_point`` -> generator).
 
 ``random``: from a random start inside the position limits, a random agent draws actions
 U(-1, 1) per joint and step, maps them into the safe acceleration range (limits.py) and records
@@ -9,6 +10,7 @@ REFERENCE §3.5) into a knot array. The rollouts are one jitted, vmapped scan.
 
 from __future__ import annotations
 
+import inspect
 from typing import Callable
 
 import jax
@@ -75,41 +77,118 @@ def random_paths(limits: L.JointLimits, n_paths: int, seed: int, steps: int = 80
     raise RuntimeError(f"only {len(paths)} of {n_paths} collision-free motions after {max_attempts} batches")
 
 
-KINDS = ("random", "ball_balancing")
+def _random_split(robot, count: int, seed: int, steps: int = 80, dt: float = 0.1, agent: str | None = None):
+    """``random`` kind: ``agent="reject"`` rejects whole self-colliding motions
+    (:func:`random_paths`, the iiwa default); ``"chunked"`` avoids collisions chunk by chunk
+    (:func:`generate_target.safe_random_paths`, the default for the ARMAR robots, whose whole
+    random motions almost all self-collide)."""
+    from mjx_pathtrack import generate_target, robots
+
+    agent = agent or RANDOM_AGENT.get(robot.name, "reject")
+    path_joints = np.flatnonzero(np.asarray(robot.path_mask))
+    collide = lambda q: robots.in_collision(robot, q)  # noqa: E731
+    source = {"type": "random_agent", "agent": agent, "seed": seed, "steps": steps, "dt": dt, "substeps": 24,
+              "resampling_distance": 0.1, "curvature_sampling_distance": 0.3,
+              "collision_check": "robots.in_collision on every setpoint"}
+    if agent == "reject":
+        return random_paths(robot.limits, count, seed, steps=steps, dt=dt, in_collision=collide,
+                            path_joints=path_joints), source
+    if agent == "chunked":
+        paths, _ = generate_target.safe_random_paths(robot, count, seed, steps=steps, dt=dt, in_collision=collide,
+                                                     path_joints=path_joints)
+        return paths, source
+    raise ValueError(f"unknown random agent {agent!r}; known: reject, chunked")
 
 
-def generate_dataset(robot: str, kind: str = "random", num_train: int = 200, num_test: int = 200,
-                     seed: int = 0, root=None, overwrite: bool = False, steps: int = 80, dt: float = 0.1):
-    """Generate ``<root>/<robot>/<kind>/{train,test}.npz`` and ``config.json`` (deterministic for
-    ``seed``: the train split uses ``seed``, the test split ``seed + 1``). Returns the directory."""
+def _target_point_split(robot, count: int, seed: int, steps: int = 190, dt: float = 0.1):
+    """``target_point`` kind (:mod:`mjx_pathtrack.generate_target`)."""
+    from mjx_pathtrack import generate_target, robots
+
+    result = generate_target.target_point_paths(
+        robot, count, seed, steps=steps, dt=dt, in_collision=lambda q: robots.in_collision(robot, q),
+        path_joints=np.flatnonzero(np.asarray(robot.path_mask)))
+    source = {"type": "target_point", "seed": seed, "steps": steps, "dt": dt, "substeps": 24,
+              "ik": "ik.solve_ik (damped least squares), nearest converged of 4 seeds",
+              "controller": "goal_seeking_acceleration through the safe range",
+              "resampling_distance": 0.1, "curvature_sampling_distance": 0.3,
+              "collision_check": "robots.in_collision on every setpoint and goal"}
+    return result.paths, source
+
+
+def _ball_balancing_split(robot, count: int, seed: int, dt: float = 0.1):
+    """``ball_balancing`` kind (:mod:`mjx_pathtrack.generate_ball`): level-plate paths of the
+    iiwa; the plate kinematics come from ``iiwa_ball`` whatever the registry robot."""
+    from mjx_pathtrack import datasets, generate_ball, robots
+
+    if robot.name not in ("iiwa", "iiwa_ball"):
+        raise datasets.DatasetError(f"ball_balancing paths exist for the iiwa only, not {robot.name!r}")
+    paths, counts = generate_ball.ball_paths(robots.load_robot("iiwa_ball", dt=dt), count, seed)
+    return paths, {"type": "level_plate_cartesian_curves", "seed": seed, "dt": dt, "scene": "iiwa_ball",
+                   "counts": counts}
+
+
+#: random-agent default per robot (see :func:`_random_split`)
+RANDOM_AGENT = {"armar6": "chunked", "armar4": "chunked", "armar4_legs": "chunked"}
+#: dataset kind -> ``generator(robot: robots.Robot, count, seed, **params) -> (paths, source dict)``;
+#: paths are knot arrays ``[K_i, path joints]``; ``source`` is stored in config.json and must hold
+#: ``seed`` and the params needed to regenerate (:func:`generate_split`).
+KINDS: dict[str, Callable] = {"random": _random_split, "target_point": _target_point_split,
+                              "ball_balancing": _ball_balancing_split}
+
+
+def generate_split(robot: str, kind: str, count: int, seed: int, dt: float = 0.1, **params):
+    """``(paths, source)``: ``count`` paths of ``kind`` for a registry robot (deterministic for
+    ``seed`` and params). Params unknown to the kind's generator raise ``DatasetError``."""
     from mjx_pathtrack import datasets, robots
 
     if kind not in KINDS:
         raise datasets.DatasetError(f"unknown dataset kind {kind!r} to generate; known: {', '.join(KINDS)}")
-    if kind == "ball_balancing":  # level-plate paths (mjx_pathtrack.generate_ball)
+    if robot not in robots.known_robots():
+        raise datasets.DatasetError(f"unknown robot {robot!r}; known: {', '.join(robots.known_robots())}")
+    fn = KINDS[kind]
+    accepted = set(inspect.signature(fn).parameters) - {"robot", "count", "seed"}
+    unknown = set(params) - accepted
+    if unknown:
+        raise datasets.DatasetError(f"{kind}: unknown generation parameter(s) {sorted(unknown)}; "
+                                    f"known: {sorted(accepted)}")
+    return fn(robots.load_robot(robot, dt=dt), count, seed, dt=dt, **params)
+
+
+def source_params(kind: str, source: dict) -> dict:
+    """The generator params of ``kind`` found in a config.json ``source`` (for regeneration)."""
+    accepted = set(inspect.signature(KINDS[kind]).parameters) - {"robot", "count", "seed"}
+    return {k: v for k, v in source.items() if k in accepted}
+
+
+def generate_dataset(robot: str, kind: str = "random", num_train: int = 200, num_test: int = 200,
+                     seed: int = 0, root=None, overwrite: bool = False, **params):
+    """Generate ``<root>/<robot>/<kind>/{train,test}.npz`` and ``config.json`` (deterministic for
+    ``seed``: the train split uses ``seed``, the test split ``seed + 1``); ``params`` go to the
+    kind's generator (e.g. ``steps``, ``dt``). Returns the directory."""
+    from mjx_pathtrack import datasets, robots
+
+    if kind not in KINDS:
+        raise datasets.DatasetError(f"unknown dataset kind {kind!r} to generate; known: {', '.join(KINDS)}")
+    if kind == "ball_balancing":  # its own config.json (reflection vectors, plate settings)
         from mjx_pathtrack.generate_ball import generate_ball_dataset
 
-        return generate_ball_dataset(robot, num_train, num_test, seed, root, overwrite, dt)
+        return generate_ball_dataset(robot, num_train, num_test, seed, root, overwrite, **params)
     if robot not in robots.known_robots():
         raise datasets.DatasetError(f"unknown robot {robot!r}; known: {', '.join(robots.known_robots())}")
     directory = datasets.dataset_dir(robot, kind, root)
     if (directory / "config.json").exists() and not overwrite:
         raise datasets.DatasetError(f"{directory} exists (use overwrite=True / --overwrite to replace it)")
-    loaded = robots.load_robot(robot, dt=dt)
+    loaded = robots.load_robot(robot)
     path_joints = np.flatnonzero(np.asarray(loaded.path_mask))
     names = [loaded.joint_names[i] for i in path_joints]
-    splits = {}
+    splits, source = {}, {}
     for split, count, split_seed in (("train", num_train, seed), ("test", num_test, seed + 1)):
         if count > 0:
-            splits[split] = random_paths(loaded.limits, count, split_seed, steps=steps, dt=dt,
-                                         in_collision=lambda q: robots.in_collision(loaded, q),
-                                         path_joints=path_joints)
+            splits[split], source = generate_split(robot, kind, count, split_seed, **params)
             datasets.save_split(directory / f"{split}.npz", splits[split])
+    source["seed"] = seed
     config = dict(format_version=datasets.FORMAT_VERSION, robot=robot, kind=kind, n_joints=len(path_joints),
                   joint_names=names, max_dis_between_knots=datasets.max_dis_between_knots(splits.values()),
-                  num_train=num_train, num_test=num_test,
-                  source={"type": "random_agent", "seed": seed, "steps": steps, "dt": dt, "substeps": 24,
-                          "resampling_distance": 0.1, "curvature_sampling_distance": 0.3,
-                          "collision_check": "robots.in_collision on every setpoint"})
+                  num_train=num_train, num_test=num_test, source=source)
     datasets.write_config(directory / "config.json", config)
     return directory

@@ -27,6 +27,7 @@ from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.executors import MjxExecutor
 from mjx_pathtrack.export import export_policy
 from mjx_pathtrack.fileio import atomic_write_bytes
+from mjx_pathtrack.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation import make_evaluator, summarize
 from mjx_pathtrack.wrappers import wrap_for_training
 
@@ -82,6 +83,9 @@ class TrainConfig:
     seed: int = 0
     task: str = "tracking"
     ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
+    #: regenerate the train split with this many paths (deterministic, into <run>/data) when the
+    #: dataset's has fewer; 0 = train on the split as it is (mjx_pathtrack.train_data)
+    num_train_paths: int = 0
 
     def env_config(self) -> EnvConfig:
         weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
@@ -103,17 +107,19 @@ class TrainConfig:
         return cls(**data)
 
 
-def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
-    """The environment over one dataset split (``train`` or ``test``) of a registry robot."""
+def make_env(config: TrainConfig, split: str = "train", root=None) -> PathTrackingEnv:
+    """The environment over one dataset split (``train`` or ``test``) of a registry robot
+    (dataset under ``root``, default ``config.dataset_root``)."""
     if config.task not in TASKS:
         raise ValueError(f"unknown task {config.task!r}; known: {', '.join(TASKS)}")
     if config.task == "ball_on_plate":
         from mjx_pathtrack.tasks.ball_on_plate import from_train_config
 
         return from_train_config(config, split, evaluation=split == "test")
+    root = config.dataset_root if root is None else root
     robot = robots.load_robot(config.robot, dt=config.dt)
-    meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
-    paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
+    meta = datasets.read_config(config.robot, config.dataset, root)
+    paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
     path_joints = np.flatnonzero(np.asarray(robot.path_mask))
     if config.executor not in EXECUTORS:
         raise ValueError(f"unknown executor {config.executor!r}; known: {', '.join(EXECUTORS)}")
@@ -196,7 +202,9 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
         if saved != config:
             raise ValueError(f"--resume: config differs from the saved one in {config_file}")
     atomic_write_bytes(config_file, (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
-    env, test_env = make_env(config, "train"), make_env(config, "test")
+    root = ensure_train_paths(config.robot, config.dataset, config.num_train_paths, config.dataset_root,
+                              run_dir / "data", log=print if verbose else None)
+    env, test_env = make_env(config, "train", root), make_env(config, "test", root)
     checkpoints = run_dir / "checkpoints"
     latest = latest_checkpoint(checkpoints) if resume else None
     restore, done_steps = latest if latest else (None, 0)
