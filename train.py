@@ -3,6 +3,11 @@
     python train.py                      # iiwa, random paths, CPU-sized default run
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
+    python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)
+    python train.py --task balance --legs fixed|controlled   # ARMAR-4 keeping its balance (MJX physics)
+
+A robot or task with a preset (mjx_pathtrack.training.PRESETS) sets the papers' values as the
+defaults of the other flags; flags given explicitly still win.
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -19,11 +24,13 @@ import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
 
 
 def parse_args(argv=None):
-    from mjx_pathtrack.training import TrainConfig
+    from mjx_pathtrack.training import TrainConfig, preset
 
     defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default="runs/iiwa_random", help="run directory (config, logs, checkpoints)")
+    parser.add_argument("--out", default=None,
+                        help="run directory (config, logs, checkpoints); default runs/<robot>_<dataset> "
+                             "or runs/balance_<legs>")
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
     parser.add_argument("--distributed", action="store_true",
                         help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
@@ -40,8 +47,15 @@ def parse_args(argv=None):
             parser.add_argument(flag, default=None)
         else:
             parser.add_argument(flag, type=type(value), default=value)
+    known, _ = parser.parse_known_args(argv)
+    try:
+        parser.set_defaults(**preset(known.robot, known.task))
+    except ValueError as e:
+        parser.error(str(e))
     args = parser.parse_args(argv)
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
+    if args.out is None:
+        args.out = f"runs/balance_{args.legs}" if args.task == "balance" else f"runs/{args.robot}_{args.dataset}"
     values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
     return args, TrainConfig(**values)
 

@@ -89,10 +89,16 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath) -> E.Policy:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
-    robot = robots.load_robot(config.robot, dt=config.dt)
-    n = robot.n_joints
-    m = int(np.sum(robot.path_mask))
-    obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
+    if config.task == "balance":
+        from mjx_pathtrack.tasks import humanoid_balance
+
+        n = len(humanoid_balance.eval_robot(config).joint_names)
+        obs_size = humanoid_balance.observation_size(config.n_next, config.legs)
+    else:
+        robot = robots.load_robot(config.robot, dt=config.dt)
+        n = robot.n_joints
+        m = int(np.sum(robot.path_mask))
+        obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
     nets = ppo_networks(config)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
     policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params)
     try:
@@ -133,6 +139,11 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
     env_cfg = cfg.env_config()
     if full_paths:
         env_cfg = dataclasses.replace(env_cfg, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0)
+    if cfg.task == "balance":
+        from mjx_pathtrack.tasks import humanoid_balance
+
+        env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg)
+        return env, humanoid_balance.eval_robot(cfg), label
     executor = None
     if cfg.executor == "mjx":
         from mjx_pathtrack.executors import MjxExecutor
@@ -170,6 +181,8 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         first = ro if first is None else first
     table = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
     summary = E.aggregate(table)
+    if getattr(env, "task_failure", None):  # e.g. "robot fell" (tasks with sensor feedback)
+        summary["task"] = env.task_failure
     if topp:
         ratio = table["ratio_to_toppra"]
         summary["toppra_duration_s_mean"] = float(np.nanmean(table["toppra_duration_s"]))
@@ -191,6 +204,8 @@ def format_report(summary: dict, title: str, robot_name: str) -> str:
              f"episodes {summary['episodes']}   end reached {100 * g('end_reached_rate'):.1f} %   "
              f"success {100 * g('success_rate'):.1f} %   progress {100 * g('progress_mean'):.1f} %",
              "terminations: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in summary["termination"].items()),
+             *([f"balancing error ({summary['task']}: episodes that ended in a task failure, paper Tables VII/VIII): "
+                f"{100 * g('task_failed_rate'):.1f} %"] if "task" in summary else []),
              "",
              "Table I   duration until stopped [s]     mean {:7.3f}   max {:7.3f}".format(g("stop_time_s_mean"),
                                                                                           g("stop_time_s_max")),

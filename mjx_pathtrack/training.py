@@ -78,10 +78,17 @@ class TrainConfig:
     init_noise_std: float = 0.5
     mean_init_scale: float = 0.01
     seed: int = 0
+    task: str = "path"
+    legs: str = "fixed"
+    balance_reward: float = 1.0
 
     def env_config(self) -> EnvConfig:
         weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
                                   deviation_threshold=self.deviation_threshold, action=self.action_reward)
+        if self.task == "balance":
+            from mjx_pathtrack.tasks import humanoid_balance
+
+            weights = humanoid_balance.balance_weights(self.balance_reward, weights)
         return EnvConfig(dt=self.dt, n_next=self.n_next, duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
                          deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
@@ -99,8 +106,36 @@ class TrainConfig:
         return cls(**data)
 
 
+#: ``--task`` values: plain path tracking, ARMAR-4 keeping its balance (tasks/humanoid_balance.py)
+TASKS = ("path", "balance")
+
+#: the papers' settings (REFERENCE §1.4, §1.6, §6.1) that ``train.py`` applies as flag defaults
+#: for a robot / task; explicit flags still override them
+PRESETS = {
+    "armar6": dict(robot="armar6", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
+                   duration=20.0, n_next=8),
+    "armar4": dict(robot="armar4", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
+                   duration=20.0, n_next=8),
+    "balance": dict(robot="armar4", dataset="random", executor="mjx", alpha=2.0, action_reward=0.0,
+                    duration=20.0, n_next=8, balance_reward=1.0),
+}
+
+
+def preset(robot: str | None = None, task: str | None = None) -> dict[str, Any]:
+    """Flag defaults of the papers' settings for ``task`` (if it has a preset) or else ``robot``."""
+    if task is not None and task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
+    return dict(PRESETS.get(task) or PRESETS.get(robot) or {})
+
+
 def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
     """The environment over one dataset split (``train`` or ``test``) of a registry robot."""
+    if config.task not in TASKS:
+        raise ValueError(f"unknown task {config.task!r}; known: {', '.join(TASKS)}")
+    if config.task == "balance":
+        from mjx_pathtrack.tasks import humanoid_balance
+
+        return humanoid_balance.make_env(config, split)
     robot = robots.load_robot(config.robot, dt=config.dt)
     meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
     paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
@@ -227,7 +262,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
     if verbose:
         print("evaluation after training: ", _fmt(report["after"]), flush=True)
     atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
-    joint_names = robots.load_robot(config.robot, dt=config.dt).joint_names
+    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.dt).joint_names
     export_policy(run_dir / "export", make_inference_fn, params, test_env, config.robot, joint_names)
     atomic_write_bytes(run_dir / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     return make_inference_fn, params, report
