@@ -213,9 +213,9 @@ def observation_size(n_next: int, legs: str = "fixed", base_sensor: bool = True)
 
 
 def balance_weights(scale: float = 1.0, base: R.RewardWeights = BALANCE_WEIGHTS) -> R.RewardWeights:
-    """The papers' ARMAR-4 weights with the four balance terms multiplied by ``scale`` (0: the
-    "no balancing reward" variant)."""
-    return dataclasses.replace(base, **{k: getattr(base, k) * scale for k in BALANCE_TERMS})
+    """``base`` (default: the papers' ARMAR-4 weights) with the four balance terms set to the
+    papers' weights (0.2, 0.2, 2.0, 0.2) times ``scale`` (0: the "no balancing reward" variant)."""
+    return dataclasses.replace(base, **{k: getattr(BALANCE_WEIGHTS, k) * scale for k in BALANCE_TERMS})
 
 
 def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis: float | None = None,
