@@ -3,11 +3,12 @@
     python train.py                      # iiwa, random paths, CPU-sized default run
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
+    python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
     python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)
     python train.py --task balance --legs fixed|controlled   # ARMAR-4 keeping its balance (MJX physics)
 
-A robot or task with a preset (mjx_pathtrack.training.PRESETS) sets the papers' values as the
-defaults of the other flags; flags given explicitly still win.
+A robot or task with a preset (mjx_pathtrack.training.PRESETS, task_presets below) sets the
+papers' values as the defaults of the other flags; flags given explicitly still win.
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -23,11 +24,20 @@ import sys
 import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
 
 
+def task_presets() -> dict[str, dict]:
+    """``--task NAME`` -> TrainConfig defaults of that task (explicit flags still override them)."""
+    from mjx_pathtrack.tasks import ball_on_plate
+
+    return {"ball_on_plate": {**ball_on_plate.PRESET, "out": "runs/ball_on_plate"}}
+
+
 def parse_args(argv=None):
     from mjx_pathtrack.training import TrainConfig, preset
 
     defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--no-ball-reward", action="store_true",
+                        help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default=None,
                         help="run directory (config, logs, checkpoints); default runs/<robot>_<dataset> "
                              "or runs/balance_<legs>")
@@ -52,7 +62,12 @@ def parse_args(argv=None):
         parser.set_defaults(**preset(known.robot, known.task))
     except ValueError as e:
         parser.error(str(e))
+    presets = task_presets()
+    if known.task in presets:
+        parser.set_defaults(**presets[known.task])
     args = parser.parse_args(argv)
+    if args.no_ball_reward:
+        args.ball_reward = 0.0
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
     if args.out is None:
         args.out = f"runs/balance_{args.legs}" if args.task == "balance" else f"runs/{args.robot}_{args.dataset}"

@@ -99,6 +99,10 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath) -> E.Policy:
         n = robot.n_joints
         m = int(np.sum(robot.path_mask))
         obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
+    if config.task == "ball_on_plate":
+        from mjx_pathtrack.tasks.ball_on_plate import observation_size
+
+        obs_size = observation_size(n, config.n_next, sensor=config.ball_reward > 0)
     nets = ppo_networks(config)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
     policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params)
     try:
@@ -128,6 +132,12 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
     ``paths_file``; ``full_paths`` evaluates whole paths instead of random sub-paths."""
     cfg = source.config
     robot = robots.load_robot(cfg.robot, dt=cfg.dt)
+    if cfg.task == "ball_on_plate":  # whole paths, ball always simulated; episodes end when it falls
+        from mjx_pathtrack.tasks.ball_on_plate import from_train_config
+
+        if paths_file is not None:
+            raise EvaluationError("--paths is not supported for the ball_on_plate task (level-plate paths only)")
+        return from_train_config(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
     max_dis = source.max_dis
     if max_dis is None:
         max_dis = float(datasets.read_config(cfg.robot, cfg.dataset, cfg.dataset_root)["max_dis_between_knots"])
@@ -170,6 +180,9 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         padded = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk))])
         ro = E.rollout(env, policy, jax.random.fold_in(key, i), padded)
         table = {k: v[:len(chunk)] for k, v in E.episode_table(env, ro, robot).items()}
+        extra = getattr(env, "extra_episode_metrics", None)  # task failures, e.g. {"ball_fell": bool [B]}
+        if extra is not None:
+            table.update({k: v[:len(chunk)] for k, v in extra(policy, jax.random.fold_in(key, i), padded).items()})
         if topp:
             pj = np.asarray(env.path_joints)
             lim = env.limits
@@ -181,8 +194,10 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         first = ro if first is None else first
     table = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
     summary = E.aggregate(table)
-    if getattr(env, "task_failure", None):  # e.g. "robot fell" (tasks with sensor feedback)
-        summary["task"] = env.task_failure
+    if extra is not None:
+        summary["task_failures"] = {f"{k}_rate": float(np.mean(table[k])) for k in extra_names(table)}
+    if getattr(env, "task_failure", None):  # envs that end episodes on a task failure (``task_failed``)
+        summary.setdefault("task_failures", {})[f"{env.task_failure}_rate"] = summary["task_failed_rate"]
     if topp:
         ratio = table["ratio_to_toppra"]
         summary["toppra_duration_s_mean"] = float(np.nanmean(table["toppra_duration_s"]))
@@ -197,6 +212,14 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
     return summary, table, first
 
 
+#: per-episode task failure flags an environment's ``extra_episode_metrics`` may return
+TASK_FAILURES = ("ball_fell", "robot_fell")
+
+
+def extra_names(table: dict) -> list[str]:
+    return [k for k in TASK_FAILURES if k in table]
+
+
 def format_report(summary: dict, title: str, robot_name: str) -> str:
     """The Table I / VI / IX style text report of :func:`run_evaluation`'s summary."""
     g = lambda k: summary.get(k, float("nan"))  # noqa: E731
@@ -204,8 +227,8 @@ def format_report(summary: dict, title: str, robot_name: str) -> str:
              f"episodes {summary['episodes']}   end reached {100 * g('end_reached_rate'):.1f} %   "
              f"success {100 * g('success_rate'):.1f} %   progress {100 * g('progress_mean'):.1f} %",
              "terminations: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in summary["termination"].items()),
-             *([f"balancing error ({summary['task']}: episodes that ended in a task failure, paper Tables VII/VIII): "
-                f"{100 * g('task_failed_rate'):.1f} %"] if "task" in summary else []),
+             *[f"task: {k[:-5].replace('_', ' ')} in {100 * v:.1f} % of the episodes"
+               for k, v in summary.get("task_failures", {}).items()],
              "",
              "Table I   duration until stopped [s]     mean {:7.3f}   max {:7.3f}".format(g("stop_time_s_mean"),
                                                                                           g("stop_time_s_max")),

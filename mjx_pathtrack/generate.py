@@ -75,7 +75,7 @@ def random_paths(limits: L.JointLimits, n_paths: int, seed: int, steps: int = 80
     raise RuntimeError(f"only {len(paths)} of {n_paths} collision-free motions after {max_attempts} batches")
 
 
-KINDS = ("random",)
+KINDS = ("random", "ball_balancing")
 
 
 def generate_dataset(robot: str, kind: str = "random", num_train: int = 200, num_test: int = 200,
@@ -86,6 +86,10 @@ def generate_dataset(robot: str, kind: str = "random", num_train: int = 200, num
 
     if kind not in KINDS:
         raise datasets.DatasetError(f"unknown dataset kind {kind!r} to generate; known: {', '.join(KINDS)}")
+    if kind == "ball_balancing":  # level-plate paths (mjx_pathtrack.generate_ball)
+        from mjx_pathtrack.generate_ball import generate_ball_dataset
+
+        return generate_ball_dataset(robot, num_train, num_test, seed, root, overwrite, dt)
     if robot not in robots.known_robots():
         raise datasets.DatasetError(f"unknown robot {robot!r}; known: {', '.join(robots.known_robots())}")
     directory = datasets.dataset_dir(robot, kind, root)

@@ -59,9 +59,15 @@ Float32: limits are pulled in by ``MARGIN``; each planned stop keeps a position 
 decision step until the stop and a small velocity reserve, so re-evaluating the same plan on
 the next step after rounding never turns it infeasible.
 
-Known limit of this version: in a narrow position corridor (a half-range below roughly the
-stopping distance from full speed) a joint that brakes hard at one limit can rebound into the
-other; the stop does not yet plan the rebound (see ``tests/limit_rollouts.random_limits``).
+*Narrow corridors*: a stop that brakes as hard as possible reaches ``P`` with the acceleration
+near ``-A``; with a low jerk limit the joint then rebounds, and in a position corridor that is
+narrow against that rebound it could reach the opposite limit (random limits at dt = 0.4 showed
+it). For joints whose corridor is narrower than ``NARROW_FACTOR`` times a bound of the rebound
+(a static per-joint test, :func:`_tail_plan`; never true for the iiwa at dt <= 0.1), the planned
+stop comes to near rest instead: its velocity floor is ``REST_FACTOR * V`` (settling exactly),
+except that a joint already moving away keeps the speed it has. Such a stop never swings back,
+so one side's plan cannot push the joint into the other side. It costs a longer simulated tail
+and approaches the limits more cautiously.
 
 States that already violate a limit (bad input) get the range that recovers fastest,
 collapsed to one value, and are flagged; the result is never NaN.
@@ -270,12 +276,15 @@ def _descent_state(p1, v1, a1, k, dt, A, delta):
     return jnp.where(after, ph, pf), jnp.where(after, vh, vf), jnp.where(after, -A, af)
 
 
-def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps):
-    """Highest position of the lowest continuation that also keeps every velocity limit.
+def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail_steps):
+    """Highest position of the lowest continuation that also keeps a velocity floor.
 
     After the step that ends at ``a1``, the acceleration is lowered as fast as the jerk and
-    acceleration limits allow, but never below the velocity lower bound (so braking towards
-    ``P`` cannot push the velocity below ``-V`` once the joint has stopped). Far from the stop
+    acceleration limits allow, but never so low that the velocity would fall below
+    ``-V_floor`` (settling rule of :func:`_velocity_upper_bound`). ``V_floor`` is the velocity
+    limit (less a reserve), so braking towards ``P`` cannot push the velocity below ``-V`` once
+    the joint has stopped (``V_limit``: the limit less that reserve); in a narrow corridor it is a small "rest" velocity instead, so the
+    stop comes to (near) rest and cannot rebound into the opposite limit (:func:`_tail_plan`). Far from the stop
     the velocity bound cannot bind and the descent has a closed form; the last ``tail_steps``
     decision steps before and after the stop are simulated. Returns ``(peak, k_stop)``: the
     peak is ``inf`` if the simulated steps do not reach a stop; ``k_stop`` is the decision step
@@ -287,18 +296,26 @@ def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps):
     n_skip = jnp.clip(k_stop - 1.0 - back, 0.0, None)
     p, v, a = _descent_state(p1, v1, a1, n_skip, dt, A, delta)
     best = jnp.maximum(_segment_max_position(p0, v0, a0, (a1 - a0) / dt, dt), p)
-    # Plan the stop against a slightly lower velocity limit than the real bound uses, so that
-    # a plan that ends exactly at P keeps a little braking in reserve for float32 rounding.
-    V_tail = V * (1.0 - TAIL_VEL_MARGIN)
+    # A joint already moving away faster than the floor keeps its speed (capped at the
+    # velocity limit): the stop must not swing back towards P just to meet a rest floor.
+    # (including what it still gains while the acceleration rises back to zero on the grid,
+    # n = ceil(a / delta) steps, with 2 % slack so that the floor is not met only by rounding)
+    V_floor = jnp.minimum(jnp.maximum(V_floor, 1.02 * (_rise_loss(jnp.maximum(-a, 0.0), delta, dt) - v)), V_limit)
     for _ in range(tail_steps):
-        floor = -_velocity_upper_bound(-v, -a, V_tail, dt, A, delta, settle)
+        floor = -_velocity_upper_bound(-v, -a, V_floor, dt, A, delta, settle)
         # (the search range is velocity-feasible, so the floor exceeds the jerk range only by
         # the V_tail reserve; the clip keeps the jerk limit)
         a_next = jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, jnp.minimum(a + delta, A))
         best = jnp.maximum(best, _segment_max_position(p, v, a, (a_next - a) / dt, dt))
         p, v, _ = integrate(p, v, a, a_next, dt, dt)
         a = a_next
-    return jnp.maximum(best, jnp.where(v > 0, jnp.inf, -jnp.inf)), k_stop
+    # Still rising after the simulated steps: bound the rest of the rise. The velocity grows by
+    # at most a t_ramp while the acceleration falls to zero, and the stop takes at most
+    # 2 t_ramp + v_up / A more (fall to -A, hold, and the rise of the settling).
+    t_ramp = (jnp.ceil(A / delta) + 1.0) * dt
+    v_up = v + jnp.maximum(a, 0.0) * t_ramp
+    rest = p + v_up * (2.0 * t_ramp + v_up / A)
+    return jnp.maximum(best, jnp.where(v > 0, rest, -jnp.inf)), k_stop
 
 
 def _first_zero_time(v, a, jerk, length):
@@ -402,7 +419,7 @@ def _step0_root(p0, v0, a0, T, dt):
     return jnp.where(valid, a1, jnp.inf)
 
 
-def _position_upper_bound(p0, v0, a0, P, reserve, V, settle, dt, A, delta, lo, hi, iterations, tail_steps):
+def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, A, delta, lo, hi, iterations, tail_steps):
     """Largest ``a1 in [lo, hi]`` whose velocity-safe stop (:func:`_safe_stop_peak`) does not
     exceed ``P`` less ``reserve`` per decision step until the stop (``lo`` if none is found).
 
@@ -422,7 +439,7 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V, settle, dt, A, delta, lo, h
     def excess(a1):
         """Exact peak minus target (> 0: a1 is not safe) and the stop step."""
         if tail_steps:
-            peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V, settle, tail_steps)
+            peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail_steps)
         else:
             peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
         return peak - jnp.maximum(P - reserve * k_stop, p0), k_stop
@@ -532,29 +549,78 @@ def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
     return jnp.where(in_step_ok_at_zero, jnp.maximum(best, 0.0), jnp.minimum(a1_in_step, 0.0))
 
 
-def _tail_steps(limits: JointLimits, dt) -> tuple[int, np.ndarray | None]:
+#: velocity floor of the stop in a narrow corridor, relative to the velocity limit (see _tail_plan)
+REST_FACTOR = 0.02
+#: a corridor counts as narrow below this multiple of the rebound bound (see _rebound_travel)
+NARROW_FACTOR = 3.0
+
+
+def _rise_loss(a_away, delta, dt, xp=jnp):
+    """Velocity [rad/s] lost while an acceleration ``-a_away <= 0`` rises back to zero as fast
+    as the grid allows (by ``delta = J dt`` per decision step, ``n = ceil(a_away / delta)``
+    steps, the last one ending at zero). Elementwise."""
+    n = xp.maximum(xp.ceil(a_away / delta), 1.0)
+    return dt * (0.5 * a_away + (n - 1.0) * a_away - 0.5 * delta * n * (n - 1.0))
+
+
+def _rebound_travel(A, J, V, dt, xp=np):
+    """Upper bound [rad] of how far a joint that stopped with the acceleration at ``-A`` travels
+    back before it can be at rest again (elementwise; ``xp`` = numpy or jax.numpy).
+
+    The acceleration needs up to ``t_ramp = (ceil(A / (J dt)) + 1) dt`` to rise back to zero,
+    losing ``v_lost <= min(V, _rise_loss(A))`` of velocity; braking that takes at most another
+    ``t_ramp + v_lost / A``. The travel is bounded by ``v_lost`` times the whole time."""
+    t_ramp = (xp.ceil(A / (J * dt)) + 1.0) * dt
+    v_lost = xp.minimum(V, _rise_loss(A, J * dt, dt, xp))
+    return v_lost * (2.0 * t_ramp + v_lost / A)
+
+
+def _narrow(limits: JointLimits, dt, xp=np):
+    """``[n]`` bool: joints whose position corridor is narrow against the rebound of a hard stop."""
+    A, J, V = (xp.asarray(x) for x in (limits.acc, limits.jerk, limits.vel))
+    span = xp.asarray(limits.pos_max) - xp.asarray(limits.pos_min)
+    return xp.isfinite(span) & (span < NARROW_FACTOR * _rebound_travel(A, J, V, dt, xp))
+
+
+class _TailPlan(NamedTuple):
+    steps: int  # simulated decision steps around a stop (joints with a velocity-limit floor)
+    rest_steps: int  # the same for joints in a narrow corridor (rest floor, longer stop)
+    needs_tail: np.ndarray | None  # [n] bool: the velocity floor can bind (None: traced limits)
+    narrow: np.ndarray | None  # [n] bool: narrow corridor, the stop comes to rest
+
+
+def _tail_plan(limits: JointLimits, dt) -> _TailPlan:
     """Static plan of the velocity-safe tail of :func:`_safe_stop_peak`.
 
-    Returns ``(steps, needs_tail)``: ``steps`` decision steps around a stop are simulated,
-    enough for the acceleration to swing from -A back to 0 (``A / (J dt)`` steps) plus margin;
-    ``needs_tail`` [n] bool marks the joints whose velocity floor can bind at all. It cannot
-    bind when ``A dt + A^2/(2J) + J dt^2/8 <= V``: from a state with ``v >= 0`` and ``a >= -A``
-    the lowest next acceleration (``>= -A``) followed by the fastest settling rise loses at most
-    ``A dt`` in that step and ``A^2/(2J) + J dt^2/8`` in the rise (the grid rise is never
-    steeper than ``J``), so the velocity stays above ``-V``. For traced limits or ``dt``
-    ``needs_tail`` is ``None`` (all joints simulate, assuming a jerk limit down to ``A / dt``)."""
+    ``steps`` decision steps around a stop are simulated, enough for the acceleration to swing
+    from -A back to 0 (``A / (J dt)`` steps) plus margin. The velocity floor cannot bind when
+    ``A dt + A^2/(2J) + J dt^2/8 <= V``: from a state with ``v >= 0`` and ``a >= -A`` the lowest
+    next acceleration (``>= -A``) followed by the fastest settling rise loses at most ``A dt`` in
+    that step and ``A^2/(2J) + J dt^2/8`` in the rise (the grid rise is never steeper than
+    ``J``), so the velocity stays above ``-V``; those joints skip the tail.
+
+    *Narrow corridors*: a stop that brakes as hard as possible ends with the acceleration near
+    ``-A`` and rebounds; if the corridor is narrower than ``NARROW_FACTOR`` times the rebound
+    bound (:func:`_rebound_travel`), the rebound could carry the joint into the opposite limit
+    (found with random limits at dt = 0.4). Those joints plan a stop that comes to near rest
+    instead (velocity floor ``REST_FACTOR * V``), simulated over ``rest_steps`` (the rise back to
+    zero acceleration comes later). It is more cautious near the limits and costs a longer tail.
+
+    For traced limits or ``dt`` the masks are ``None``: every joint simulates the longer tail
+    with the narrow test evaluated in the trace, assuming a jerk limit down to ``A / dt``."""
     try:
         acc = np.asarray(limits.acc, np.float64)
         jerk = np.asarray(limits.jerk, np.float64)
         vel = np.asarray(limits.vel, np.float64)
         dt = float(dt)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError, TypeError):
-        return 5, None  # as for a jerk limit down to A / dt
-    ratio = float(np.max(acc / (jerk * dt)))
+        return _TailPlan(5, 8, None, None)  # as for a jerk limit down to A / dt
+    ratio = int(np.ceil(float(np.max(acc / (jerk * dt)))))
     j = jerk * (1.0 - 1e-4)  # the per-step budget is a hair below J dt (float32 reserve)
     drop = acc * dt + acc * acc / (2.0 * j) + j * dt * dt / 8.0
     needs_tail = drop * (1.0 + 1e-3) > vel * (1.0 - MARGIN) * (1.0 - TAIL_VEL_MARGIN)
-    return int(np.ceil(ratio)) + 3, needs_tail
+    narrow = _narrow(limits, dt)
+    return _TailPlan(ratio + 3, 2 * ratio + 6, needs_tail | narrow, narrow)
 
 
 class SafeRange(NamedTuple):
@@ -589,12 +655,19 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     p_tol = jnp.where(jnp.isfinite(p_tol), p_tol, 0.0)
     V = limits.vel * (1.0 - MARGIN)
     P_hi, P_lo = limits.pos_max - p_tol, limits.pos_min + p_tol
-    tail, needs_tail = _tail_steps(limits, dt)
+    plan = _tail_plan(limits, dt)
+    narrow = _narrow(limits, dt, jnp) if plan.narrow is None else plan.narrow
+    # velocity floor of the planned stop: the velocity limit less a reserve (so that a plan that
+    # ends exactly at P keeps a little braking in reserve for float32 rounding), or near rest
+    V_limit = V * (1.0 - TAIL_VEL_MARGIN)
+    floor_v = jnp.where(narrow, REST_FACTOR * V, V_limit)
+    settle = settle_factor * A
+    # the stop to rest settles exactly (a settling acceleration would keep a small drift)
+    settle_tail = jnp.where(narrow, 0.0, settle)
     reserve = 0.25 * p_tol
     # per-step jerk budget, pulled in by the float32 resolution of accelerations of size A so
     # that a1 - a0 rounded never exceeds J dt (matters when J dt << A)
     delta = jnp.maximum(J * dt * (1.0 - MARGIN) - 8.0 * float(np.finfo(np.float32).eps) * A, 0.0)
-    settle = settle_factor * A
     j_lo, j_hi = jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A)
     k_lo = jnp.maximum(j_lo, -_velocity_upper_bound(-v, -a, V, dt, A, delta, settle))
     k_hi = jnp.minimum(j_hi, _velocity_upper_bound(v, a, V, dt, A, delta, settle))
@@ -611,20 +684,25 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
         Pg = take(P)
         finite = jnp.isfinite(Pg)
         bound = _position_upper_bound(jnp.where(finite, take(p), 0.0), take(v), take(a), jnp.where(finite, Pg, 0.0),
-                                      take(reserve), take(V), take(settle), dt, take(A), take(delta), take(lo),
+                                      take(reserve), take(floor_v), take(V_limit), take(settle_tail), dt, take(A), take(delta), take(lo),
                                       take(hi), iterations, steps)
         return jnp.where(finite, bound, jnp.inf)
 
+    # Static split: joints whose velocity floor cannot bind skip the simulated tail, narrow
+    # corridors simulate the longer stop to rest (traced limits: everyone the longer tail).
+    if plan.needs_tail is None:
+        groups = [(None, plan.rest_steps)]
+    else:
+        masks = ((~plan.needs_tail, 0), (plan.needs_tail & ~plan.narrow, plan.steps), (plan.narrow, plan.rest_steps))
+        groups = [(np.flatnonzero(m), steps) for m, steps in masks if m.any()]
+        if len(groups) == 1:
+            groups = [(None, groups[0][1])]
+
     def position_bound(P, p, v, a, lo, hi):
-        # Joints whose velocity floor cannot bind skip the simulated tail (static split).
-        if needs_tail is None or needs_tail.all():
-            return group_bound(P, p, v, a, lo, hi, None, tail)
-        if not needs_tail.any():
-            return group_bound(P, p, v, a, lo, hi, None, 0)
-        fast, slow = np.flatnonzero(~needs_tail), np.flatnonzero(needs_tail)
-        both = jnp.concatenate([group_bound(P, p, v, a, lo, hi, fast, 0),
-                                group_bound(P, p, v, a, lo, hi, slow, tail)], axis=-1)
-        return both[..., np.argsort(np.concatenate([fast, slow]))]
+        if groups[0][0] is None:
+            return group_bound(P, p, v, a, lo, hi, None, groups[0][1])
+        parts = jnp.concatenate([group_bound(P, p, v, a, lo, hi, idx, steps) for idx, steps in groups], axis=-1)
+        return parts[..., np.argsort(np.concatenate([idx for idx, _ in groups]))]
 
     hi = jnp.minimum(k_hi, position_bound(P_hi, p, v, a, s_lo, s_hi))
     lo = jnp.maximum(k_lo, -position_bound(-P_lo, -p, -v, -a, -s_hi, -s_lo))
@@ -637,6 +715,7 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     lower_bad = under_p | under_v | (lo >= j_hi)
     mid = 0.5 * (lo + hi)
     rec = jnp.where(upper_bad & ~lower_bad, hi, jnp.where(lower_bad & ~upper_bad, lo, mid))
+    rec = jnp.clip(rec, j_lo, j_hi)  # the jerk and acceleration limits can always be kept
     # ranges that are empty only by rounding collapse to their midpoint
     a_min = jnp.where(empty, rec, jnp.minimum(lo, mid))
     a_max = jnp.where(empty, rec, jnp.maximum(hi, mid))

@@ -31,6 +31,8 @@ from mjx_pathtrack.evaluation import make_evaluator, summarize
 from mjx_pathtrack.wrappers import wrap_for_training
 
 EXECUTORS = ("kinematic", "mjx")
+#: task variants (``TrainConfig.task``): plain path tracking or a sensory-feedback task (mjx_pathtrack.tasks)
+TASKS = ("tracking", "ball_on_plate", "balance")
 #: per-path-joint deviation weights of the papers' nets (REFERENCE §1.5)
 _IIWA_W = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
 _ARMAR4_W = (1.0, 1.0) + 2 * (1.0, 1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
@@ -78,9 +80,10 @@ class TrainConfig:
     init_noise_std: float = 0.5
     mean_init_scale: float = 0.01
     seed: int = 0
-    task: str = "path"
-    legs: str = "fixed"
-    balance_reward: float = 1.0
+    task: str = "tracking"
+    ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
+    legs: str = "fixed"  # balance: "fixed" (18 actions) or "controlled" (30)
+    balance_reward: float = 1.0  # balance: scale of the papers' balance terms; 0 = without them
 
     def env_config(self) -> EnvConfig:
         weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
@@ -105,9 +108,6 @@ class TrainConfig:
             raise ValueError(f"unknown config keys: {sorted(unknown)}")
         return cls(**data)
 
-
-#: ``--task`` values: plain path tracking, ARMAR-4 keeping its balance (tasks/humanoid_balance.py)
-TASKS = ("path", "balance")
 
 #: the papers' settings (REFERENCE §1.4, §1.6, §6.1) that ``train.py`` applies as flag defaults
 #: for a robot / task; explicit flags still override them
@@ -136,6 +136,10 @@ def make_env(config: TrainConfig, split: str = "train") -> PathTrackingEnv:
         from mjx_pathtrack.tasks import humanoid_balance
 
         return humanoid_balance.make_env(config, split)
+    if config.task == "ball_on_plate":
+        from mjx_pathtrack.tasks.ball_on_plate import from_train_config
+
+        return from_train_config(config, split, evaluation=split == "test")
     robot = robots.load_robot(config.robot, dt=config.dt)
     meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
     paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mjx_pathtrack import limits as L
-from limit_rollouts import IIWA_ACC, IIWA_POS, IIWA_VEL, POLICIES, iiwa_limits, rollout_usage
+from limit_rollouts import IIWA_ACC, IIWA_POS, IIWA_VEL, POLICIES, iiwa_limits, random_limits, rollout_usage
 
 TOL = 1e-6  # relative
 
@@ -90,19 +90,24 @@ def test_step_extrema_match_dense_sampling():
 
 # --- the safe range in closed loop -----------------------------------------------------------
 
-def _assert_safe(usage, min_width, violations):
-    assert violations == 0, f"{violations} steps flagged a limit violation / empty range"
-    assert min_width >= 0.0, "empty safe range"
-    assert np.all(usage <= 1.0 + TOL), f"max normalised usage p,v,a,jerk = {usage.max(1)}"
+DTS = [0.1, 0.05, 1.0 / 240.0, 0.4]
 
 
-@pytest.mark.parametrize("dt", [0.1, 0.05, 1.0 / 240.0])
-@pytest.mark.parametrize("seed,policy", list(enumerate(POLICIES)))
-def test_closed_loop_never_violates_limits(dt, seed, policy):
-    """1000 episodes x 100 decisions x 7 joints per case, checked at every step and at the exact
-    extrema inside each step (position, velocity, |acceleration|, |jerk|)."""
-    usage, width, violations = rollout_usage(iiwa_limits(dt), dt, policy, episodes=1000, steps=100, seed=seed)
-    _assert_safe(usage, width, violations)
+@pytest.mark.parametrize("dt", DTS)
+@pytest.mark.parametrize("kind", ["iiwa", "random"])
+def test_closed_loop_never_violates_limits(dt, kind):
+    """Per case 5 policies x 400 episodes x 100 decisions x 7 joints (16,000 episodes in all),
+    checked at every step and at the exact extrema inside each step (position, velocity,
+    |acceleration|, |jerk|). ``random``: drawn limits whose jerk binds (jerk < 2 acc / dt) and
+    position corridors down to +-0.2 rad, a new draw per dt."""
+    seed = DTS.index(dt)
+    limits = iiwa_limits(dt) if kind == "iiwa" else random_limits(dt, seed=seed)
+    results = rollout_usage(limits, dt, episodes=400, steps=100, seed=seed)
+    for policy in POLICIES:
+        usage, width, violations = results[policy]
+        assert violations == 0, f"{policy}: {violations} steps flagged a limit violation / empty range"
+        assert width >= 0.0, f"{policy}: empty safe range"
+        assert np.all(usage <= 1.0 + TOL), f"{policy}: max normalised usage p,v,a,jerk = {usage.max(1)}"
 
 
 def test_constant_plus_one_reaches_pmax_and_stays_without_overshoot():

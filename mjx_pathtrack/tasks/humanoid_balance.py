@@ -112,8 +112,8 @@ class HumanoidBalanceEnv(PathTrackingEnv):
     ``robot.n_substeps``); ``options``: :class:`BalanceOptions`.
     """
 
-    #: what a task failure (``task_failed``) means here (evaluation reports)
-    task_failure = "robot fell"
+    #: what a task failure (``task_failed``) means here (evaluate.py: "robot fell in x % of the episodes")
+    task_failure = "robot_fell"
 
     def __init__(self, robot, paths: S.Path, max_dis_between_knots: float, config: EnvConfig,
                  options: BalanceOptions = BalanceOptions()):
