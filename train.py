@@ -5,6 +5,11 @@
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
     python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
     python train.py --sweep sweep.yaml [--out DIR]  # a grid of runs + summary.csv (mjx_pathtrack.sweep)
+    python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)
+    python train.py --task balance --legs fixed|controlled   # ARMAR-4 keeping its balance (MJX physics)
+
+A robot or task with a preset (mjx_pathtrack.training.PRESETS, task_presets below) sets the
+papers' values as the defaults of the other flags; flags given explicitly still win.
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -28,15 +33,15 @@ def task_presets() -> dict[str, dict]:
 
 
 def parse_args(argv=None):
-    from mjx_pathtrack.training import TrainConfig
+    from mjx_pathtrack.training import TrainConfig, preset
 
     defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default=None,
-                        help="run directory (config, logs, checkpoints; default runs/iiwa_random), or with "
-                             "--sweep the sweep's output directory")
+                        help="run directory (config, logs, checkpoints; default runs/<robot>_<dataset> "
+                             "or runs/balance_<legs>), or with --sweep the sweep's output directory")
     parser.add_argument("--sweep", default=None, metavar="FILE",
                         help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweep.py); the training "
                              "flags below are then ignored: put them in the file's 'base'")
@@ -56,14 +61,20 @@ def parse_args(argv=None):
             parser.add_argument(flag, default=None)
         else:
             parser.add_argument(flag, type=type(value), default=value)
-    task, _ = parser.parse_known_args(argv)
+    known, _ = parser.parse_known_args(argv)
+    try:
+        parser.set_defaults(**preset(known.robot, known.task))
+    except ValueError as e:
+        parser.error(str(e))
     presets = task_presets()
-    if task.task in presets:
-        parser.set_defaults(**presets[task.task])
+    if known.task in presets:
+        parser.set_defaults(**presets[known.task])
     args = parser.parse_args(argv)
     if args.no_ball_reward:
         args.ball_reward = 0.0
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
+    if args.out is None and not args.sweep:  # (a sweep has its own default output directory)
+        args.out = f"runs/balance_{args.legs}" if args.task == "balance" else f"runs/{args.robot}_{args.dataset}"
     values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
     return args, TrainConfig(**values)
 
@@ -74,7 +85,6 @@ def main(argv=None) -> int:
         from mjx_pathtrack import sweep
 
         return sweep.main([args.sweep] + (["--out", args.out] if args.out else []))
-    args.out = args.out or "runs/iiwa_random"
     import jax
 
     if args.distributed:

@@ -227,7 +227,7 @@ class PathTrackingEnv(Env):
         a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
         a_next = jnp.where(track.braking, a_brake, a_policy)
         # executed positions at the sub-steps of the step, start point included: [S+1, n]
-        exec_state, q, _ = self.executor.execute(track.executor, track.p, track.v, track.a, a_next, cfg.dt)
+        exec_state, q, sensors = self.executor.execute(track.executor, track.p, track.v, track.a, a_next, cfg.dt)
         p1, v1, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, cfg.dt)
         executed = q[:, self.path_joints]
         length, d = self._progress_and_deviation(path, track.s, executed)
@@ -236,30 +236,45 @@ class PathTrackingEnv(Env):
         d_max, d_mean = jnp.max(d), jnp.mean(d)
         terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
                                  d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
-        reward = sum(terms.values())
         steps = track.steps + 1
         reached_end = s1 >= path.length
+        braking = track.braking | (reached_end & cfg.brake_at_end)
+        new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
+        task_terms, failed, task_metrics = self.task_step(track, new, sensors)
+        terms = {**terms, **task_terms}
+        reward = sum(terms.values())
         stopped = track.braking & jnp.all(jnp.abs(v1) < cfg.stop_velocity) & jnp.all(jnp.abs(a_next) < cfg.stop_acceleration)
         done_stop = stopped if cfg.terminate_on_stop else jnp.zeros((), bool)
         done_dev = (d_max > cfg.terminate_deviation) if cfg.terminate_deviation is not None else jnp.zeros((), bool)
         done_time = steps >= track.max_steps
-        done = done_stop | done_dev | done_time
+        done = done_stop | done_dev | done_time | failed
         # finishing early must not lower the return: the stop reward counts for every remaining step
         reward = jnp.where(done_stop, reward * (track.max_steps + 1 - steps).astype(jnp.float32), reward)
         final_dev = R.weighted_deviation(path.knots[path.n_knots - 1], executed[-1], cfg.deviation_weights)
-        success = done & ~done_dev & (final_dev < cfg.success_deviation)
-        braking = track.braking | (reached_end & cfg.brake_at_end)
-        new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
+        success = done & ~done_dev & ~failed & (final_dev < cfg.success_deviation)
         metrics = {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}, "length": length, "d_max": d_max,
                    "d_mean": d_mean, "progress": (s1 - track.s_start) / jnp.maximum(path.length - track.s_start, 1e-9),
                    "reached_end": reached_end.astype(jnp.float32), "success": success.astype(jnp.float32),
-                   "terminated_deviation": (done_dev & ~done_stop).astype(jnp.float32)}
+                   "terminated_deviation": (done_dev & ~done_stop).astype(jnp.float32),
+                   "task_failed": failed.astype(jnp.float32), **task_metrics}
         return new, reward, done, metrics
+
+    def task_step(self, before: TrackState, after: TrackState, sensors: dict[str, Array]
+                  ) -> tuple[dict[str, Array], Array, dict[str, Array]]:
+        """Hook for tasks with sensor feedback (:mod:`mjx_pathtrack.tasks`), called once per step
+        after the executor ran: ``before``/``after`` are the states around the step (``after.executor``
+        is the executor's new state, e.g. ``mjx.Data``), ``sensors`` what the executor returned.
+        Returns ``(terms, failed, metrics)``: named weighted reward terms added to the step reward
+        (before the robot-stop multiplication), a bool ``[]`` that ends the episode as a task failure
+        (not a success; metric ``task_failed``), extra scalar metrics. A subclass that returns terms
+        or metrics lists them in :meth:`metric_names`. Default: no task."""
+        del before, after, sensors
+        return {}, jnp.zeros((), bool), {}
 
     def metric_names(self) -> tuple[str, ...]:
         terms = ("distance", "max_deviation", "mean_deviation", "action")
         return ("reward",) + tuple(f"reward/{k}" for k in terms) + ("length", "d_max", "d_mean", "progress", "reached_end",
-                                                      "success", "terminated_deviation")
+                                                      "success", "terminated_deviation", "task_failed")
 
     def _progress_and_deviation(self, path: S.Path, s0: Array, executed: Array) -> tuple[Array, Array]:
         """Arc length ``l`` of the executed polyline ``[S+1, m]`` and deviations ``[M]`` at

@@ -89,10 +89,16 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath) -> E.Policy:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
-    robot = robots.load_robot(config.robot, dt=config.dt)
-    n = robot.n_joints
-    m = int(np.sum(robot.path_mask))
-    obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
+    if config.task == "balance":
+        from mjx_pathtrack.tasks import humanoid_balance
+
+        n = len(humanoid_balance.eval_robot(config).joint_names)
+        obs_size = humanoid_balance.observation_size(config.n_next, config.legs)
+    else:
+        robot = robots.load_robot(config.robot, dt=config.dt)
+        n = robot.n_joints
+        m = int(np.sum(robot.path_mask))
+        obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
     if config.task == "ball_on_plate":
         from mjx_pathtrack.tasks.ball_on_plate import observation_size
 
@@ -143,6 +149,11 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
     env_cfg = cfg.env_config()
     if full_paths:
         env_cfg = dataclasses.replace(env_cfg, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0)
+    if cfg.task == "balance":
+        from mjx_pathtrack.tasks import humanoid_balance
+
+        env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg)
+        return env, humanoid_balance.eval_robot(cfg), label
     executor = None
     if cfg.executor == "mjx":
         from mjx_pathtrack.executors import MjxExecutor
@@ -185,6 +196,8 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
     summary = E.aggregate(table)
     if extra is not None:
         summary["task_failures"] = {f"{k}_rate": float(np.mean(table[k])) for k in extra_names(table)}
+    if getattr(env, "task_failure", None):  # envs that end episodes on a task failure (``task_failed``)
+        summary.setdefault("task_failures", {})[f"{env.task_failure}_rate"] = summary["task_failed_rate"]
     if topp:
         ratio = table["ratio_to_toppra"]
         summary["toppra_duration_s_mean"] = float(np.nanmean(table["toppra_duration_s"]))

@@ -32,7 +32,8 @@ class EpisodeMetrics(NamedTuple):
     """Per-episode results ``[B]``: return; steps until done; time [s] when the path end was
     first reached and when the robot had stopped (``nan`` if never); mean over steps of d_mean
     and max of d_max [rad]; success (stopped / timed out with the last point within the success
-    deviation of the end knot); terminated on deviation; final arc progress in [0, 1]."""
+    deviation of the end knot); terminated on deviation; final arc progress in [0, 1]; ended as
+    a task failure (the env's ``task_failed``, e.g. the humanoid fell; 0 for plain tracking)."""
 
     episode_return: Array
     steps: Array
@@ -43,6 +44,7 @@ class EpisodeMetrics(NamedTuple):
     success: Array
     terminated_deviation: Array
     progress: Array
+    task_failed: Array
 
 
 def evaluate(env: PathTrackingEnv, policy: Policy, rng: Array, n_episodes: int,
@@ -63,10 +65,10 @@ def _run(env: PathTrackingEnv, policy: Policy, state, keys: Array, record: bool)
     n_episodes = state.obs.shape[0]
     zeros = jnp.zeros(n_episodes)
     nan = jnp.full(n_episodes, jnp.nan)
-    init = (state, jnp.zeros(n_episodes, bool), zeros, zeros, nan, nan, zeros, zeros, zeros, zeros, zeros)
+    init = (state, jnp.zeros(n_episodes, bool), zeros, zeros, nan, nan, zeros, zeros, zeros, zeros, zeros, zeros)
 
     def body(carry, key):
-        state, done, ret, steps, end_t, stop_t, dsum, dmax, success, term_dev, progress = carry
+        state, done, ret, steps, end_t, stop_t, dsum, dmax, success, term_dev, progress, failed = carry
         action = policy(state.obs, key)
         nxt = jax.vmap(env.step)(state, action)
         live = ~done
@@ -86,14 +88,15 @@ def _run(env: PathTrackingEnv, policy: Policy, state, keys: Array, record: bool)
                  jnp.where(live, jnp.maximum(dmax, m["d_max"]), dmax),
                  jnp.where(now_done, m["success"], success),
                  jnp.where(now_done, m["terminated_deviation"], term_dev),
-                 jnp.where(live, m["progress"], progress))
+                 jnp.where(live, m["progress"], progress),
+                 jnp.where(now_done, m.get("task_failed", zeros), failed))
         out = _step_record(env, state.pipeline_state, nxt.pipeline_state, state.obs, live) if record else None
         return carry, out
 
     final, records = jax.lax.scan(body, init, keys)
-    _, done, ret, steps, end_t, stop_t, dsum, dmax, success, term_dev, progress = final
+    _, done, ret, steps, end_t, stop_t, dsum, dmax, success, term_dev, progress, failed = final
     metrics = EpisodeMetrics(ret, steps, end_t, stop_t, dsum / jnp.maximum(steps, 1), dmax, success, term_dev,
-                             progress)
+                             progress, failed)
     return metrics, done, records
 
 
@@ -135,6 +138,7 @@ def summarize(m: EpisodeMetrics) -> dict[str, float]:
         "max_deviation": float(m.max_deviation.mean()),
         "terminated_deviation": float(m.terminated_deviation.mean()),
         "progress": float(m.progress.mean()),
+        "task_failed": float(m.task_failed.mean()),
     }
 
 
@@ -164,7 +168,7 @@ def make_evaluator(env: PathTrackingEnv, make_inference_fn, n_episodes: int, max
 SAMPLE_SPACING = 0.01
 #: tolerance of the limit audit (normalised units)
 AUDIT_TOLERANCE = 1e-6
-TERMINATION_REASONS = ("stopped_at_end", "deviation", "time_budget", "not_done")
+TERMINATION_REASONS = ("stopped_at_end", "deviation", "task_failed", "time_budget", "not_done")
 
 
 class Rollout(NamedTuple):
@@ -306,9 +310,11 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
             out[f"{name}_mean"] = full.sum(1) / mask.sum(1)
             out[f"{name}_max"] = np.where(mask, full, -np.inf).max(1)
             out[f"{name}_final"] = full[np.arange(B), last]
-    reason = np.where(~ro.done, "not_done", np.where(m.terminated_deviation > 0, "deviation",
-                      np.where(~np.isnan(m.stop_time), "stopped_at_end", "time_budget")))
+    reason = np.where(~ro.done, "not_done", np.where(m.task_failed > 0, "task_failed",
+                      np.where(m.terminated_deviation > 0, "deviation",
+                               np.where(~np.isnan(m.stop_time), "stopped_at_end", "time_budget"))))
     out["termination"] = reason
+    out["task_failed"] = m.task_failed > 0
     ratios = np.where(ro.live[..., None, None], ro.limit_ratio, 0.0).max(axis=(0, 3))  # [B, 4]
     for i, q in enumerate(("pos", "vel", "acc", "jerk")):
         out[f"max_{q}_ratio"] = ratios[:, i]
@@ -346,6 +352,8 @@ def aggregate(table: dict[str, np.ndarray]) -> dict[str, Any]:
     out["end_reached_rate"] = float(table["end_reached"].mean())
     out["success_rate"] = float(table["success"].mean())
     out["progress_mean"] = float(table["progress"].mean())
+    if "task_failed" in table:
+        out["task_failed_rate"] = float(np.mean(table["task_failed"]))
     for key in [k for k in table if k.endswith(("_mean", "_final")) and "dev" in k]:
         out[key] = float(table[key].mean())
     for key in [k for k in table if k.endswith("_max") and "dev" in k]:

@@ -33,7 +33,7 @@ from mjx_pathtrack.wrappers import wrap_for_training
 
 EXECUTORS = ("kinematic", "mjx")
 #: task variants (``TrainConfig.task``): plain path tracking or a sensory-feedback task (mjx_pathtrack.tasks)
-TASKS = ("tracking", "ball_on_plate")
+TASKS = ("tracking", "ball_on_plate", "balance")
 #: per-path-joint deviation weights of the papers' nets (REFERENCE §1.5)
 _IIWA_W = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
 _ARMAR4_W = (1.0, 1.0) + 2 * (1.0, 1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
@@ -86,10 +86,16 @@ class TrainConfig:
     #: regenerate the train split with this many paths (deterministic, into <run>/data) when the
     #: dataset's has fewer; 0 = train on the split as it is (mjx_pathtrack.train_data)
     num_train_paths: int = 0
+    legs: str = "fixed"  # balance: "fixed" (18 actions) or "controlled" (30)
+    balance_reward: float = 1.0  # balance: scale of the papers' balance terms; 0 = without them
 
     def env_config(self) -> EnvConfig:
         weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
                                   deviation_threshold=self.deviation_threshold, action=self.action_reward)
+        if self.task == "balance":
+            from mjx_pathtrack.tasks import humanoid_balance
+
+            weights = humanoid_balance.balance_weights(self.balance_reward, weights)
         return EnvConfig(dt=self.dt, n_next=self.n_next, duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
                          deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
@@ -107,11 +113,34 @@ class TrainConfig:
         return cls(**data)
 
 
+#: the papers' settings (REFERENCE §1.4, §1.6, §6.1) that ``train.py`` applies as flag defaults
+#: for a robot / task; explicit flags still override them
+PRESETS = {
+    "armar6": dict(robot="armar6", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
+                   duration=20.0, n_next=8),
+    "armar4": dict(robot="armar4", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
+                   duration=20.0, n_next=8),
+    "balance": dict(robot="armar4", dataset="random", executor="mjx", alpha=2.0, action_reward=0.0,
+                    duration=20.0, n_next=8, balance_reward=1.0),
+}
+
+
+def preset(robot: str | None = None, task: str | None = None) -> dict[str, Any]:
+    """Flag defaults of the papers' settings for ``task`` (if it has a preset) or else ``robot``."""
+    if task is not None and task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
+    return dict(PRESETS.get(task) or PRESETS.get(robot) or {})
+
+
 def make_env(config: TrainConfig, split: str = "train", root=None) -> PathTrackingEnv:
     """The environment over one dataset split (``train`` or ``test``) of a registry robot
     (dataset under ``root``, default ``config.dataset_root``)."""
     if config.task not in TASKS:
         raise ValueError(f"unknown task {config.task!r}; known: {', '.join(TASKS)}")
+    if config.task == "balance":
+        from mjx_pathtrack.tasks import humanoid_balance
+
+        return humanoid_balance.make_env(config, split)
     if config.task == "ball_on_plate":
         from mjx_pathtrack.tasks.ball_on_plate import from_train_config
 
@@ -245,7 +274,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
     if verbose:
         print("evaluation after training: ", _fmt(report["after"]), flush=True)
     atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
-    joint_names = robots.load_robot(config.robot, dt=config.dt).joint_names
+    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.dt).joint_names
     export_policy(run_dir / "export", make_inference_fn, params, test_env, config.robot, joint_names)
     atomic_write_bytes(run_dir / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     return make_inference_fn, params, report

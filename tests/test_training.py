@@ -88,3 +88,18 @@ def test_train_cli_on_two_forced_host_devices(tmp_path):
     assert "CpuDevice(id=1)" in result.stdout  # both devices visible to Brax's pmap
     assert "evaluation after training" in result.stdout
     assert (tmp_path / "run" / "params.pkl").is_file()
+
+
+def test_presets_set_the_papers_settings_as_flag_defaults():
+    sys.path.insert(0, str(REPO))
+    import train as cli
+
+    args, cfg = cli.parse_args(["--robot", "armar6"])
+    assert (cfg.robot, cfg.executor, cfg.alpha, cfg.duration, cfg.action_reward) == ("armar6", "kinematic", 1.0, 20.0, 0.0)
+    assert args.out == "runs/armar6_random"
+    args, cfg = cli.parse_args(["--task", "balance", "--legs", "controlled", "--alpha", "3"])
+    assert (cfg.task, cfg.legs, cfg.robot, cfg.executor, cfg.balance_reward) == ("balance", "controlled", "armar4", "mjx", 1.0)
+    assert cfg.alpha == 3.0 and cfg.duration == 20.0 and args.out == "runs/balance_controlled"  # explicit flags win
+    assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--task", "juggling"])
