@@ -11,6 +11,12 @@ package imports jax.
 The flag only affects the CPU backend, so setting it on a GPU/TPU run is
 harmless; the platform check below errs towards setting it.
 
+XLA aborts the whole process on an unknown flag in XLA_FLAGS, and the flag is gone
+from jaxlib 0.11 (measured: jaxlib 0.11.2 aborts with "Unknown flag in XLA_FLAGS:
+--xla_cpu_use_fusion_emitters=false"). The flag is therefore only added for jaxlib
+versions below ``FLAG_REMOVED_IN`` (read from the installed distribution's metadata,
+without importing jaxlib). The project pins jax 0.9.2, where it exists and matters.
+
 Opt out with ``MJX_PATHTRACK_NO_XLA_FLAGS=1``.
 
 This module must not import jax.
@@ -19,12 +25,14 @@ This module must not import jax.
 from __future__ import annotations
 
 import os
+import re
 import sys
 from collections.abc import Mapping, MutableMapping
 
 FUSION_FLAG_NAME = "xla_cpu_use_fusion_emitters"
 FUSION_FLAG = f"--{FUSION_FLAG_NAME}=false"
 OPT_OUT_VAR = "MJX_PATHTRACK_NO_XLA_FLAGS"
+FLAG_REMOVED_IN = (0, 11)  # first jaxlib (major, minor) whose XLA rejects the flag
 
 _FALSY = {"", "0", "false", "no", "off"}
 
@@ -49,15 +57,43 @@ def _has_fusion_flag(xla_flags: str) -> bool:
     return False
 
 
-def xla_flags_with_cpu_fix(environ: Mapping[str, str]) -> str | None:
+def installed_jaxlib_version() -> str | None:
+    """The installed jaxlib's version string from package metadata (no import), or None."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("jaxlib")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def jaxlib_knows_flag(version: str | None) -> bool:
+    """True if XLA in jaxlib ``version`` accepts the fusion-emitter flag.
+
+    Unknown or unparsable versions count as knowing it (the pinned jaxlib does).
+    """
+    if version is None:
+        return True
+    parts = re.match(r"(\d+)\.(\d+)", version)
+    if parts is None:
+        return True
+    return (int(parts.group(1)), int(parts.group(2))) < FLAG_REMOVED_IN
+
+
+def xla_flags_with_cpu_fix(
+    environ: Mapping[str, str], jaxlib_version: str | None = None
+) -> str | None:
     """The XLA_FLAGS value this package wants, or None to leave XLA_FLAGS alone.
 
-    Pure: reads ``environ`` only. Returns None when opted out, when the run will not use
-    the CPU backend, or when the user already chose a value for the fusion-emitter flag.
-    Otherwise returns the user's flags (kept verbatim) with ``FUSION_FLAG`` appended.
+    Pure: reads ``environ`` and ``jaxlib_version`` only. Returns None when opted out, when
+    the run will not use the CPU backend, when the user already chose a value for the
+    fusion-emitter flag, or when that jaxlib's XLA no longer has the flag. Otherwise returns
+    the user's flags (kept verbatim) with ``FUSION_FLAG`` appended.
     """
     current = environ.get("XLA_FLAGS", "")
     if _opted_out(environ) or not _may_run_on_cpu(environ) or _has_fusion_flag(current):
+        return None
+    if not jaxlib_knows_flag(jaxlib_version):
         return None
     return f"{current} {FUSION_FLAG}".strip()
 
@@ -71,7 +107,7 @@ def configure_xla_flags(environ: MutableMapping[str, str] = os.environ) -> bool:
 
     Returns True if ``environ`` was changed.
     """
-    new_flags = xla_flags_with_cpu_fix(environ)
+    new_flags = xla_flags_with_cpu_fix(environ, installed_jaxlib_version())
     if new_flags is None:
         return False
     environ["XLA_FLAGS"] = new_flags

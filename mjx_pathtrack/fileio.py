@@ -5,10 +5,12 @@ A reader never sees a half-written file, and a crash leaves the old file (or non
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 import tempfile
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import Any, BinaryIO, Callable
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None], mode: int = 0o644) -> None:
@@ -32,3 +34,27 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None], mod
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """:func:`atomic_write` of ``data``."""
     atomic_write(path, lambda f: f.write(data))
+
+
+def append_csv_row(path: str | os.PathLike, row: dict[str, Any]) -> None:
+    """Append ``row`` to the CSV log ``path``, rewriting it atomically.
+
+    Rows may bring keys the earlier rows lacked (e.g. training metrics that appear only after
+    the first evaluation): the header becomes the union of all keys in order of first
+    appearance and every row keeps its values under its own columns (missing cells empty), so
+    a log never has values shifted under the wrong header.
+    """
+    path = Path(path)
+    rows: list[dict[str, Any]] = []
+    if path.exists():
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    rows.append(row)
+    fields: dict[str, None] = {}
+    for r in rows:
+        fields.update(dict.fromkeys(r))
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(fields), restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(path, text.getvalue().encode())

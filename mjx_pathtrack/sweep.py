@@ -52,7 +52,7 @@ from typing import Any, Sequence
 import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
 import numpy as np
 
-from mjx_pathtrack.fileio import atomic_write, atomic_write_bytes
+from mjx_pathtrack.fileio import append_csv_row, atomic_write, atomic_write_bytes
 from mjx_pathtrack.training import TrainConfig, json_safe
 
 SPEC_KEYS = ("base", "grid", "test_datasets", "eval_episodes", "eval_seed", "vectorize", "out")
@@ -446,7 +446,7 @@ def _train_vectorized(points: Sequence[Point], out: FsPath, verbose: bool):
         rate = (step - last[1]) * len(rows) / max(now - last[0], 1e-9)
         last[:] = [now, step]
         for d, row in zip(dirs, rows):
-            _append_csv(d / "progress.csv", {"step": step, "env_steps_per_s_all_points": rate, **row})
+            append_csv_row(d / "progress.csv", {"step": step, "env_steps_per_s_all_points": rate, **row})
         if verbose:
             print(f"  vmapped x{len(rows)}: step {step:>10,}  {rate:10,.0f} env-steps/s (all points)  returns "
                   + " ".join(f"{r['episode_return']:.1f}" for r in rows), flush=True)
@@ -461,15 +461,6 @@ def _train_vectorized(points: Sequence[Point], out: FsPath, verbose: bool):
     if verbose:
         print(f"  exported {len(points)} policies in {time.monotonic() - t0:.1f} s", flush=True)
     return params, seconds / len(points)
-
-
-def _append_csv(file: FsPath, row: dict) -> None:
-    new = not file.exists()
-    with open(file, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
 
 
 def write_summary(out: FsPath, spec: SweepSpec, points: Sequence[Point]) -> FsPath:

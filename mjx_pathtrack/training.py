@@ -8,7 +8,6 @@ which Brax uses the devices of every process. Nothing here is device specific.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import functools
 import json
@@ -21,15 +20,17 @@ from typing import Any
 import jax
 import numpy as np
 
-from mjx_pathtrack import datasets, robots
+from mjx_pathtrack import _jax_compat, datasets, robots
 from mjx_pathtrack import reward as R
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.executors import MjxExecutor
 from mjx_pathtrack.export import export_policy
-from mjx_pathtrack.fileio import atomic_write_bytes
+from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes
 from mjx_pathtrack.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation import make_evaluator, summarize
 from mjx_pathtrack.wrappers import wrap_for_training
+
+_jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
 
 EXECUTORS = ("kinematic", "mjx")
 #: task variants (``TrainConfig.task``): plain path tracking or a sensory-feedback task (mjx_pathtrack.tasks)
@@ -183,12 +184,7 @@ class Progress:
         eta = (self.total - step) / rate if rate == rate and rate > 0 else float("nan")
         row = {"step": step, "env_steps_per_s": rate, "eta_s": eta,
                **{k: float(np.asarray(v)) for k, v in metrics.items() if np.ndim(v) == 0}}
-        new = not self.file.exists()
-        with open(self.file, "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
+        append_csv_row(self.file, row)
         for key, value in row.items():
             if key != "step" and np.isfinite(value):
                 self.board.add_scalar(key, value, step)

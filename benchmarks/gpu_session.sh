@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# One prepared GPU session (device machine: JAX 0.11.2 + CUDA preinstalled, no internet).
+# Carried wheels in .whl/ (cp312): klimits, mujoco, mujoco-core, mujoco-mjx, brax and brax's
+# missing pure-Python deps; see README "GPU". Logs go to $OUT (or ./gpu_out).
+# SMALL=1 runs the same steps with tiny sizes (a dry run on the CPU).
+set -u
+OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+if [ -d .whl ] && ! python3 -c "import brax, klimits" 2>/dev/null; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl || exit 1
+  export PYTHONPATH=/tmp/site:$PWD
+else
+  export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+fi
+if [ "${SMALL:-0}" = 1 ]; then B=64; BL=256; TS=40000; E=64; BS=32; T1=120; T2=120
+else B=2048; BL=4096; TS=3000000; E=4096; BS=512; T1=${T1:-200}; T2=${T2:-0}; fi
+run() { local name=$1 limit=$2; shift 2; echo "=== $name ($(date +%T), limit ${limit}s)";
+  timeout "$limit" "$@" 2>&1 | grep -v "import warp\|import mujoco_warp" | tee "$OUT/$name.log"; }
+# smoke: fail fast if the stack does not import
+python3 -c "import mjx_pathtrack, jax; from mjx_pathtrack import training; print(jax.__version__, jax.devices())" 2>&1 \
+  | grep -v warp || exit 2
+nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv 2>/dev/null | tee "$OUT/gpu.txt"
+run limits_dt0.1 60 python3 benchmarks/bench_limits.py --batch $BL --dt 0.1
+run limits_dt0.05 60 python3 benchmarks/bench_limits.py --batch $BL --dt 0.05
+run limits_big 60 python3 benchmarks/bench_limits.py --batch $((BL * 16)) --dt 0.1
+run env_kinematic 60 python3 benchmarks/bench_env.py --batch $B
+run env_mjx 90 python3 benchmarks/bench_env.py --batch $B --executor mjx
+run train_bench 120 python3 benchmarks/bench_train.py --num-envs $B --num-timesteps $TS
+# learning-budget exploration for issue 5 (papers' reward; then alpha 1): eval lines every 10 M steps
+run train_alpha2 $T1 python3 train.py --out /tmp/run_a2 --num-envs $E --batch-size $BS --num-minibatches 8 \
+  --num-timesteps $((TS * 20)) --num-evals 7 --eval-episodes 256
+[ "$T2" -gt 0 ] && run train_alpha1 $T2 python3 train.py --out /tmp/run_a1 --alpha 1.0 --num-envs $E --batch-size $BS \
+  --num-minibatches 8 --num-timesteps $((TS * 20)) --num-evals 7 --eval-episodes 256
+echo "=== done $(date +%T)"
