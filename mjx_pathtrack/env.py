@@ -140,10 +140,18 @@ class PathTrackingEnv(Env):
 
     # -- Brax interface ---------------------------------------------------------------------
 
+    #: task name recorded in exported policies' manifests
+    task_name = "tracking"
+
     @property
     def observation_size(self) -> int:
         n, m, N = self.limits.n_joints, len(self.path_joints), self.config.n_next
-        return 3 * n + m * (N + 1) + 2 + N
+        return 3 * n + m * (N + 1) + 2 + N + sum(size for _, size in self.extra_observation_blocks())
+
+    def extra_observation_blocks(self) -> list[tuple[str, int]]:
+        """Named task-specific blocks ``[(name, size), ...]`` that :meth:`observe` appends after
+        the path-tracking observation (none here; tasks with sensors override it)."""
+        return []
 
     @property
     def action_size(self) -> int:

@@ -180,9 +180,6 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         padded = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk))])
         ro = E.rollout(env, policy, jax.random.fold_in(key, i), padded)
         table = {k: v[:len(chunk)] for k, v in E.episode_table(env, ro, robot).items()}
-        extra = getattr(env, "extra_episode_metrics", None)  # task failures, e.g. {"ball_fell": bool [B]}
-        if extra is not None:
-            table.update({k: v[:len(chunk)] for k, v in extra(policy, jax.random.fold_in(key, i), padded).items()})
         if topp:
             pj = np.asarray(env.path_joints)
             lim = env.limits
@@ -194,10 +191,8 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         first = ro if first is None else first
     table = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
     summary = E.aggregate(table)
-    if extra is not None:
-        summary["task_failures"] = {f"{k}_rate": float(np.mean(table[k])) for k in extra_names(table)}
     if getattr(env, "task_failure", None):  # envs that end episodes on a task failure (``task_failed``)
-        summary.setdefault("task_failures", {})[f"{env.task_failure}_rate"] = summary["task_failed_rate"]
+        summary["task_failures"] = {f"{env.task_failure}_rate": summary["task_failed_rate"]}
     if topp:
         ratio = table["ratio_to_toppra"]
         summary["toppra_duration_s_mean"] = float(np.nanmean(table["toppra_duration_s"]))
@@ -210,14 +205,6 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
                                        "mean_over_dt": float(times.mean() / env.config.dt),
                                        "max_over_dt": float(times.max() / env.config.dt)}
     return summary, table, first
-
-
-#: per-episode task failure flags an environment's ``extra_episode_metrics`` may return
-TASK_FAILURES = ("ball_fell", "robot_fell")
-
-
-def extra_names(table: dict) -> list[str]:
-    return [k for k in TASK_FAILURES if k in table]
 
 
 def format_report(summary: dict, title: str, robot_name: str) -> str:

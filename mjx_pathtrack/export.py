@@ -34,11 +34,13 @@ def _finite_or_none(values) -> list:
     return [float(x) if math.isfinite(float(x)) else None for x in np.asarray(values).ravel()]
 
 
-def observation_layout(n_joints: int, n_path: int, n_next: int) -> list[dict]:
-    """Named slices of the observation (REFERENCE §2): ``[{name, start, size}, ...]``."""
+def observation_layout(n_joints: int, n_path: int, n_next: int,
+                       extra: list[tuple[str, int]] = ()) -> list[dict]:
+    """Named slices of the observation (REFERENCE §2): ``[{name, start, size}, ...]``; ``extra``:
+    the task's sensor blocks ``[(name, size), ...]`` appended at the end."""
     blocks = [("position", n_joints), ("velocity", n_joints), ("acceleration", n_joints),
               ("knots", n_path * (n_next + 1)), ("offset_from_first_knot", 1), ("state_path_length", 1),
-              ("knot_distances", n_next)]
+              ("knot_distances", n_next), *extra]
     layout, start = [], 0
     for name, size in blocks:
         layout.append({"name": name, "start": start, "size": size})
@@ -68,6 +70,7 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "package_version": __version__,
         "jax_version": jax.__version__,
         "robot": robot_name,
+        "task": getattr(env, "task_name", "tracking"),
         "joint_names": list(joint_names),
         "path_joints": [int(i) for i in env.path_joints],
         "dt": float(env.config.dt),
@@ -78,7 +81,8 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
                    "jerk": _finite_or_none(lim.jerk)},
         "observation_size": obs_size,
         "action_size": act_size,
-        "observation_layout": observation_layout(lim.n_joints, len(env.path_joints), int(env.config.n_next)),
+        "observation_layout": observation_layout(lim.n_joints, len(env.path_joints), int(env.config.n_next),
+                                                 env.extra_observation_blocks()),
         "input": {"shape": ["batch", obs_size], "dtype": "float32", "range": [-1.0, 1.0]},
         "output": {"shape": ["batch", act_size], "dtype": "float32", "range": [-1.0, 1.0],
                    "meaning": "action per joint, mapped into the safe acceleration range"},

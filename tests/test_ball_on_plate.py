@@ -10,6 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mjx_pathtrack.export import observation_layout
+
 from mjx_pathtrack.tasks import ball_on_plate as BP
 
 
@@ -70,6 +72,11 @@ def test_observation_sizes(env, rollout):
                               BP.BallConfig(reward=0.0, sensor=False), home=env.home)
     assert blind.observation_size == BP.observation_size(sensor=False) == 68
     assert jax.eval_shape(blind.reset, jax.random.PRNGKey(0)).obs.shape == (68,)
+    # the exported manifest names every block, sensors last
+    for e, size in ((env, 72), (blind, 68)):
+        layout = observation_layout(7, 7, e.config.n_next, e.extra_observation_blocks())
+        assert sum(b["size"] for b in layout) == size and layout[-1]["start"] + layout[-1]["size"] == size
+    assert [b for b, _ in env.extra_observation_blocks()][-1] == "ball_xy" and env.task_name == "ball_on_plate"
 
 
 def test_train_preset():

@@ -49,7 +49,8 @@ def test_round_trip_matches_in_process_policy(exported):
     np.testing.assert_allclose(policy(obs), expected, atol=1e-6)
     np.testing.assert_allclose(policy(obs[0]), expected[0], atol=1e-6)  # single observation
     manifest = policy.manifest
-    assert manifest["robot"] == "iiwa" and manifest["joint_names"] == list(iiwa.JOINT_NAMES)
+    assert manifest["robot"] == "iiwa" and manifest["task"] == "tracking"
+    assert manifest["joint_names"] == list(iiwa.JOINT_NAMES)
     assert manifest["observation_size"] == 94 and manifest["action_size"] == 7
     assert sum(block["size"] for block in manifest["observation_layout"]) == 94
 

@@ -9,6 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mjx_pathtrack.export import observation_layout
+
 from mjx_pathtrack import spline as S
 from mjx_pathtrack.env import EnvConfig
 from mjx_pathtrack.robots import load_robot
@@ -101,6 +103,9 @@ def test_observation_sizes_match_reference(robot, rollout):
         assert (other.observation_size, other.action_size) == (size, actions)
         assert jax.eval_shape(other.reset, key).obs.shape == (size,)
         assert H.observation_size(8, legs, sensor) == size
+        layout = observation_layout(other.limits.n_joints, len(other.path_joints), 8,
+                                    other.extra_observation_blocks())
+        assert sum(b["size"] for b in layout) == size and other.task_name == "balance"
 
 
 def test_bad_options_are_rejected(robot):

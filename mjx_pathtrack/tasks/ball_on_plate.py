@@ -178,9 +178,15 @@ class BallOnPlateEnv(PathTrackingEnv):
         self.ball_config = ball
         self._half_range = jnp.asarray(R.BALL_HALF_RANGE, jnp.float32)
 
-    @property
-    def observation_size(self) -> int:
-        return super().observation_size + 6 + (4 if self.ball_config.sensor else 0)
+    task_name = "ball_on_plate"
+    #: what a task failure (``task_failed``) means here (evaluate.py: "ball fell in x % of the episodes")
+    task_failure = "ball_fell"
+
+    def extra_observation_blocks(self) -> list[tuple[str, int]]:
+        blocks = [("target_point", 3), ("target_minus_executed_point", 3)]
+        if self.ball_config.sensor:
+            blocks += [("ball_xy_previous", 2), ("ball_xy", 2)]
+        return blocks
 
     def metric_names(self) -> tuple[str, ...]:
         return super().metric_names() + ("reward/ball", "ball_fell")
@@ -203,14 +209,19 @@ class BallOnPlateEnv(PathTrackingEnv):
         q_end = new.executor.data.qpos[self.executor.robot.qpos_adr]
         pos, _ = self.executor.robot.fk(jnp.stack([q_ref, q_end]))
         new = new._replace(executor=ex._replace(target=pos[0, 0], relative=pos[0, 0] - pos[1, 0]))
-        fell = self.off_plate(ex.ball)
-        r_ball = self.ball_config.reward * R.ball_reward(ex.ball[:2])
-        reward = reward + r_ball
-        if self.ball_config.terminate:
-            done = done | fell
-        metrics = {**metrics, "reward": reward, "reward/ball": r_ball, "ball_fell": fell.astype(jnp.float32),
-                   "success": metrics["success"] * (1.0 - fell.astype(jnp.float32))}
+        # a fall also spoils success when it does not end the episode (trained without the ball)
+        metrics = {**metrics, "success": metrics["success"] * (1.0 - metrics["ball_fell"])}
         return new, reward, done, metrics
+
+    def task_step(self, before, after, sensors):
+        """R_ball and the fall (``ball_fell``; a task failure that ends the episode when
+        ``ball_config.terminate``)."""
+        del before, sensors
+        ball = after.executor.ball
+        fell = self.off_plate(ball)
+        failed = fell if self.ball_config.terminate else jnp.zeros((), bool)
+        return ({"ball": self.ball_config.reward * R.ball_reward(ball[:2])}, failed,
+                {"ball_fell": fell.astype(jnp.float32)})
 
     def observe(self, track) -> Array:
         ex = track.executor
@@ -219,38 +230,6 @@ class BallOnPlateEnv(PathTrackingEnv):
         if self.ball_config.sensor:
             extras += [ex.ball_prev[:2] / self._half_range, ex.ball[:2] / self._half_range]
         return jnp.clip(jnp.concatenate([super().observe(track)] + extras), -1.0, 1.0)
-
-    def extra_episode_metrics(self, policy, rng: Array, path_indices, max_steps: int | None = None) -> dict:
-        """``{"ball_fell": bool [B]}`` (evaluate_run's hook): :meth:`episode_ball_fell`."""
-        return {"ball_fell": self.episode_ball_fell(policy, rng, path_indices, max_steps)}
-
-    def episode_ball_fell(self, policy, rng: Array, path_indices, max_steps: int | None = None) -> np.ndarray:
-        """Bool ``[B]``: whether the ball left the plate in the episodes that
-        :func:`mjx_pathtrack.evaluation.rollout` runs for the same ``rng`` and ``path_indices``
-        (same reset and policy keys, so the same episodes for a deterministic policy)."""
-        indices = jnp.asarray(np.asarray(path_indices), jnp.int32)
-        n = int(indices.shape[0])
-        max_steps = self.config.max_episode_steps() + 1 if max_steps is None else int(max_steps)
-
-        @jax.jit
-        def run(rng, indices):
-            reset_keys = jax.random.split(rng, n + 1)
-            state = jax.vmap(self.reset)(reset_keys[1:], indices)
-
-            def body(carry, key):
-                state, done, fell = carry
-                nxt = jax.vmap(self.step)(state, policy(state.obs, key))
-                live = ~done
-                fell = fell | (live & (nxt.metrics["ball_fell"] > 0))
-                state = jax.tree.map(lambda a, b: jnp.where(live.reshape(live.shape + (1,) * (a.ndim - 1)), a, b),
-                                     nxt, state)
-                return (state, done | (live & (nxt.done > 0)), fell), None
-
-            init = (state, jnp.zeros(n, bool), jnp.zeros(n, bool))
-            (_, _, fell), _ = jax.lax.scan(body, init, jax.random.split(reset_keys[0], max_steps))
-            return fell
-
-        return np.asarray(run(rng, indices))
 
 
 def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) -> int:

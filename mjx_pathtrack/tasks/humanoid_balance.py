@@ -172,9 +172,12 @@ class HumanoidBalanceEnv(PathTrackingEnv):
 
     # -- PathTrackingEnv hooks ----------------------------------------------------------------
 
-    @property
-    def observation_size(self) -> int:
-        return super().observation_size + (BASE_OBS_SIZE if self.options.base_sensor else 0)
+    task_name = "balance"
+
+    def extra_observation_blocks(self) -> list[tuple[str, int]]:
+        if not self.options.base_sensor:
+            return []
+        return [("pelvis_position", 3), ("pelvis_quaternion_wxyz", 4), ("pelvis_tilt", 1)]
 
     def observe(self, track: TrackState) -> Array:
         obs = super().observe(track)
