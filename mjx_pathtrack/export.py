@@ -70,7 +70,7 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "package_version": __version__,
         "jax_version": jax.__version__,
         "robot": robot_name,
-        "task": getattr(env, "task_name", "tracking"),
+        "task": env.task_name,
         "joint_names": list(joint_names),
         "path_joints": [int(i) for i in env.path_joints],
         "dt": float(env.config.dt),
