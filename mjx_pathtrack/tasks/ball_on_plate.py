@@ -56,6 +56,11 @@ FRICTION_RANGE = (1e-4, 6e-4)
 DATASET = ("iiwa", "ball_balancing")
 
 
+#: observation blocks added after the path-tracking observation (REFERENCE §2 items 10-11), in order
+CARTESIAN_BLOCKS = (("target_point", 3), ("target_minus_executed_point", 3))
+SENSOR_BLOCKS = (("ball_xy_previous", 2), ("ball_xy", 2))  # only with the ball sensor
+
+
 @dataclasses.dataclass(frozen=True)
 class BallConfig:
     """Task settings. ``reward``: weight of R_ball (0: off); ``sensor``: ball position in the
@@ -183,10 +188,7 @@ class BallOnPlateEnv(PathTrackingEnv):
     task_failure = "ball_fell"
 
     def extra_observation_blocks(self) -> list[tuple[str, int]]:
-        blocks = [("target_point", 3), ("target_minus_executed_point", 3)]
-        if self.ball_config.sensor:
-            blocks += [("ball_xy_previous", 2), ("ball_xy", 2)]
-        return blocks
+        return list(CARTESIAN_BLOCKS + (SENSOR_BLOCKS if self.ball_config.sensor else ()))
 
     def metric_names(self) -> tuple[str, ...]:
         return super().metric_names() + ("reward/ball", "ball_fell")
@@ -234,7 +236,8 @@ class BallOnPlateEnv(PathTrackingEnv):
 
 def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) -> int:
     """REFERENCE §2: ``3 n + n (N + 1) + 2 + N + 6 (+ 4 with the ball sensor)``."""
-    return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + 6 + (4 if sensor else 0)
+    extra = CARTESIAN_BLOCKS + (SENSOR_BLOCKS if sensor else ())
+    return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra)
 
 
 def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallConfig = BallConfig(),

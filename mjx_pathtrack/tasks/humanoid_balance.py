@@ -58,7 +58,9 @@ FALL_DROP = 0.2
 #: observation scales (REFERENCE §2 item 12): pelvis position [m], tilt [rad]
 BASE_POS_SCALE = 0.2 / np.sqrt(3.0)
 TILT_SCALE = 0.125
-BASE_OBS_SIZE = 8
+#: observation blocks the pelvis sensor adds (``base_sensor=True``), in order
+BASE_BLOCKS = (("pelvis_position", 3), ("pelvis_quaternion_wxyz", 4), ("pelvis_tilt", 1))
+BASE_OBS_SIZE = sum(size for _, size in BASE_BLOCKS)
 #: the papers' ARMAR-4 balancing nets (REFERENCE §1.4): alpha 2, no R_action, balance terms
 BALANCE_WEIGHTS = R.RewardWeights(alpha=2.0, max_deviation=0.9, mean_deviation=0.9, action=0.0,
                                   base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2)
@@ -175,9 +177,7 @@ class HumanoidBalanceEnv(PathTrackingEnv):
     task_name = "balance"
 
     def extra_observation_blocks(self) -> list[tuple[str, int]]:
-        if not self.options.base_sensor:
-            return []
-        return [("pelvis_position", 3), ("pelvis_quaternion_wxyz", 4), ("pelvis_tilt", 1)]
+        return list(BASE_BLOCKS) if self.options.base_sensor else []
 
     def observe(self, track: TrackState) -> Array:
         obs = super().observe(track)
