@@ -9,6 +9,7 @@ only when JAX lacks the function; on the pinned JAX it changes nothing.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -28,10 +29,12 @@ def device_put_replicated(x: Any, devices: Sequence[jax.Device]) -> Any:
 
 
 def _has(name: str) -> bool:
-    try:
-        getattr(jax, name)
-    except AttributeError:  # removed names raise from jax's module __getattr__
-        return False
+    with warnings.catch_warnings():  # deprecated-but-present names warn on access
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            getattr(jax, name)
+        except AttributeError:  # removed names raise from jax's module __getattr__
+            return False
     return True
 
 
