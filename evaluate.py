@@ -28,6 +28,9 @@ def parse_args(argv=None):
                         help="episodes per jitted batch (the sub-paths drawn depend on --seed and --batch)")
     parser.add_argument("--plot-episode", type=int, default=0)
     parser.add_argument("--timing-decisions", type=int, default=200, help="0: skip the computation-time measurement")
+    parser.add_argument("--stochastic", action="store_true",
+                        help="sample actions from the trained Gaussian (as in training and the authors' evaluate.py "
+                             "without --no_exploration) instead of taking its mean; run directories only")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--out", default=None, help="output directory (default SOURCE/eval)")
     return parser.parse_args(argv)
@@ -41,7 +44,7 @@ def main(argv=None) -> int:
     from mjx_pathtrack.datasets import DatasetError
 
     try:
-        source = R.load_policy_source(args.source)
+        source = R.load_policy_source(args.source, deterministic=not args.stochastic)
         env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
@@ -50,8 +53,10 @@ def main(argv=None) -> int:
                                              args.timing_decisions, not args.no_toppra)
     episode = min(max(args.plot_episode, 0), len(first.s_start) - 1)
     meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
-            "seed": args.seed, "full_paths": args.full_paths, "plot_episode": episode}
-    title = f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'})"
+            "seed": args.seed, "full_paths": args.full_paths,
+            "actions": "sampled" if args.stochastic else "deterministic", "plot_episode": episode}
+    title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
+             f"{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))
     out = Path(args.out) if args.out else Path(args.source) / "eval"
     files = R.write_outputs(out, summary, table, meta, env, first, robot, episode)

@@ -50,15 +50,20 @@ class PolicySource:
     path: FsPath
 
 
-def load_policy_source(path: str) -> PolicySource:
+def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
     """Load a run directory (``config.json`` + ``params.pkl``) or an export directory
-    (``manifest.json`` + ``policy.jaxexport``); :class:`EvaluationError` if unusable."""
+    (``manifest.json`` + ``policy.jaxexport``); :class:`EvaluationError` if unusable.
+    ``deterministic=False``: the policy samples its actions from the trained Gaussian, with the
+    key of each step, as during training (run directories only: an export holds the mean)."""
     from mjx_pathtrack import export
 
     root = FsPath(path)
     if not root.is_dir():
         raise EvaluationError(f"no run or export directory at {root}")
     if (root / export.MANIFEST_FILE).is_file():
+        if not deterministic:
+            raise EvaluationError(f"{root} is an export, which holds only the deterministic policy; "
+                                  f"sampled actions need the run directory (config.json + params.pkl)")
         try:
             exported = export.load_policy(root)
         except export.ExportError as e:
@@ -82,10 +87,10 @@ def load_policy_source(path: str) -> PolicySource:
         params = pickle.loads(params_file.read_bytes())
     except Exception as e:  # unpickling errors come in many types
         raise EvaluationError(f"corrupt checkpoint {params_file}: {type(e).__name__}: {e}") from e
-    return PolicySource(_brax_policy(config, params, params_file), config, None, "run", root)
+    return PolicySource(_brax_policy(config, params, params_file, deterministic), config, None, "run", root)
 
 
-def _brax_policy(config: TrainConfig, params, params_file: FsPath) -> E.Policy:
+def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True) -> E.Policy:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
@@ -104,7 +109,7 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath) -> E.Policy:
 
         obs_size = observation_size(n, config.n_next, sensor=config.ball_reward > 0)
     nets = ppo_networks(config)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
-    policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params)
+    policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params, deterministic)
     try:
         out = jax.eval_shape(policy, jax.ShapeDtypeStruct((1, obs_size), jnp.float32), jax.random.PRNGKey(0))
     except Exception as e:

@@ -189,6 +189,25 @@ def test_export_dir_gives_the_same_policy(tiny_run, tmp_path):
                                atol=1e-5)
 
 
+def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run, tmp_path):
+    from mjx_pathtrack.export import export_policy
+
+    run, (cfg, env, nets, params) = tiny_run
+    mean = R.load_policy_source(str(run)).policy
+    sampled = R.load_policy_source(str(run), deterministic=False).policy
+    obs = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (4096, env.observation_size)), jnp.float32)
+    a, b = sampled(obs, jax.random.PRNGKey(0)), sampled(obs, jax.random.PRNGKey(1))
+    assert np.all(np.asarray(a) != np.asarray(b))  # fresh noise for every key, episode and joint
+    noise = np.asarray(a - mean(obs, jax.random.PRNGKey(0)))
+    assert abs(noise.mean()) < 0.05 and 0.5 * cfg.init_noise_std < noise.std() < 2 * cfg.init_noise_std
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    export_policy(tmp_path / "export", ppo_nets.make_inference_fn(nets), params, env, "iiwa",
+                  robots.load_robot("iiwa").joint_names)
+    with pytest.raises(R.EvaluationError, match="only the deterministic policy"):
+        R.load_policy_source(str(tmp_path / "export"), deterministic=False)
+
+
 def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     run, _ = tiny_run
     with pytest.raises(R.EvaluationError, match="no run or export directory"):
