@@ -11,6 +11,7 @@ Writes metrics.json, episodes.csv and PNG plots of one episode to --out (default
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
@@ -31,6 +32,9 @@ def parse_args(argv=None):
     parser.add_argument("--stochastic", action="store_true",
                         help="sample actions from the trained Gaussian (as in training and the authors' evaluate.py "
                              "without --no_exploration) instead of taking its mean; run directories only")
+    parser.add_argument("--terminate-deviation", type=float, default=None, metavar="RAD",
+                        help="end episodes at this weighted deviation instead of the training config's "
+                             "(inf: never, e.g. to see whether a task failure follows a deviation)")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--out", default=None, help="output directory (default SOURCE/eval)")
     return parser.parse_args(argv)
@@ -45,6 +49,11 @@ def main(argv=None) -> int:
 
     try:
         source = R.load_policy_source(args.source, deterministic=not args.stochastic)
+        if args.terminate_deviation is not None:
+            if not args.terminate_deviation > 0:
+                raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
+            source = dataclasses.replace(source, config=dataclasses.replace(
+                source.config, terminate_deviation=args.terminate_deviation))
         env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
@@ -54,7 +63,8 @@ def main(argv=None) -> int:
     episode = min(max(args.plot_episode, 0), len(first.s_start) - 1)
     meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
             "seed": args.seed, "full_paths": args.full_paths,
-            "actions": "sampled" if args.stochastic else "deterministic", "plot_episode": episode}
+            "actions": "sampled" if args.stochastic else "deterministic",
+            "terminate_deviation": source.config.terminate_deviation, "plot_episode": episode}
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
              f"{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))
