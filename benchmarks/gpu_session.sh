@@ -17,6 +17,14 @@ if [ "${SMALL:-0}" = 1 ]; then B=64; BL=256; TS=40000; E=64; BS=32; T1=120; T2=1
 else B=2048; BL=4096; TS=3000000; E=4096; BS=512; T1=${T1:-200}; T2=${T2:-0}; fi
 run() { local name=$1 limit=$2; shift 2; echo "=== $name ($(date +%T), limit ${limit}s)";
   timeout "$limit" "$@" 2>&1 | grep -v "import warp\|import mujoco_warp" | tee "$OUT/$name.log"; }
+# BALANCE=1.0 or BALANCE=0.0: only the ARMAR-4 balance-reward evidence (issue 7) for that scale,
+# one call each (scripts/balance_evidence.py; a finished run is not trained again)
+if [ -n "${BALANCE:-}" ]; then
+  if [ "${SMALL:-0}" = 1 ]; then NB=16; TSB=1600; else NB=${NB:-1024}; TSB=${TSB:-3000000}; fi
+  run balance_$BALANCE ${TB:-540} python3 scripts/balance_evidence.py --root "${BROOT:-/tmp/balance_splines}" --out "$OUT/balance" \
+    --num-envs $NB --num-timesteps $TSB --scales "$BALANCE" --uncensored
+  exit
+fi
 # smoke: fail fast if the stack does not import
 python3 -c "import mjx_pathtrack, jax; from mjx_pathtrack import training; print(jax.__version__, jax.devices())" 2>&1 \
   | grep -v warp || exit 2

@@ -1,7 +1,8 @@
 """Does the balance reward make ARMAR-4 fall less often? Same budget, with and without it.
 
     python scripts/balance_evidence.py [--root /tmp/balance_splines] [--out runs/balance_evidence]
-        [--legs controlled] [--num-timesteps 30000] [--num-envs 64]
+        [--legs controlled] [--num-timesteps 30000] [--num-envs 64] [--batch-size B]
+        [--scales 1.0 0.0] [--uncensored]
 
 1. generates a small ARMAR-4 upper-body random dataset under ``--root`` if it is missing
    (random safe motions as ``datasets generate``, resampled by curvature, but WITHOUT the
@@ -10,7 +11,13 @@
 2. trains ``train.py --task balance`` twice with the same seed and budget, ``--balance-reward 1``
    and ``--balance-reward 0``;
 3. prints the share of test episodes in which the robot fell (``task_failed``), before and after
-   training, from each run's ``report.json``.
+   training, from each run's ``report.json``;
+4. with ``--uncensored``, also evaluates each trained policy with ``evaluate.py
+   --terminate-deviation inf``: episodes then run on past the 0.25 rad deviation limit, which
+   otherwise ends weak policies' episodes before they could fall, and prints that fall rate.
+
+A run whose ``report.json`` exists is not trained again (``--scales 1.0`` and ``--scales 0.0``
+can run as separate calls, e.g. on a lent GPU with a per-call time limit).
 """
 
 from __future__ import annotations
@@ -56,25 +63,40 @@ def main() -> int:
     parser.add_argument("--eval-episodes", type=int, default=32)
     parser.add_argument("--n-train", type=int, default=64)
     parser.add_argument("--n-test", type=int, default=32)
+    parser.add_argument("--batch-size", type=int, default=None, help="PPO minibatch size (default: --num-envs)")
+    parser.add_argument("--scales", nargs="+", default=["1.0", "0.0"], help="balance-reward scales to train")
+    parser.add_argument("--uncensored", action="store_true",
+                        help="also evaluate with evaluate.py --terminate-deviation inf")
     args = parser.parse_args()
     root = Path(args.root)
     if not (root / "armar4" / "random" / "config.json").is_file():
         make_dataset(root, args.n_train, args.n_test)
     rates = {}
-    for scale in ("1.0", "0.0"):
+    for scale in args.scales:
         out = Path(args.out) / f"{args.legs}_balance_reward_{scale}"
-        cmd = [sys.executable, str(REPO / "train.py"), "--task", "balance", "--legs", args.legs,
-               "--balance-reward", scale, "--dataset-root", str(root), "--num-envs", str(args.num_envs),
-               "--batch-size", str(args.num_envs), "--num-minibatches", "4", "--unroll-length", "10",
-               "--num-timesteps", str(args.num_timesteps), "--num-evals", "2",
-               "--eval-episodes", str(args.eval_episodes), "--out", str(out)]
-        print(" ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
+        if not (out / "report.json").is_file():
+            cmd = [sys.executable, str(REPO / "train.py"), "--task", "balance", "--legs", args.legs,
+                   "--balance-reward", scale, "--dataset-root", str(root), "--num-envs", str(args.num_envs),
+                   "--batch-size", str(args.batch_size or args.num_envs), "--num-minibatches", "4",
+                   "--unroll-length", "10", "--num-timesteps", str(args.num_timesteps), "--num-evals", "2",
+                   "--eval-episodes", str(args.eval_episodes), "--out", str(out)]
+            print(" ".join(cmd), flush=True)
+            subprocess.run(cmd, check=True)
         report = json.loads((out / "report.json").read_text())
-        rates[scale] = (report["before"]["task_failed"], report["after"]["task_failed"])
-    for scale, (before, after) in rates.items():
-        print(f"balance reward x{scale}: fell in {100 * before:.1f} % of test episodes before training, "
-              f"{100 * after:.1f} % after")
+        rates[scale] = [report["before"]["task_failed"], report["after"]["task_failed"]]
+        if args.uncensored:
+            ev = out / "eval_uncensored"
+            cmd = [sys.executable, str(REPO / "evaluate.py"), str(out), "--terminate-deviation", "inf", "--no-toppra",
+                   "--timing-decisions", "0", "--out", str(ev)]
+            print(" ".join(cmd), flush=True)
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+            rates[scale].append(json.loads((ev / "metrics.json").read_text())["task_failed_rate"])
+    for scale, values in rates.items():
+        line = (f"balance reward x{scale}: fell in {100 * values[0]:.1f} % of test episodes before training, "
+                f"{100 * values[1]:.1f} % after")
+        if len(values) > 2:
+            line += f", {100 * values[2]:.1f} % after without the deviation limit"
+        print(line)
     return 0
 
 
