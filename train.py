@@ -57,8 +57,8 @@ def parse_args(argv=None):
         flag = "--" + field.name.replace("_", "-")
         if isinstance(value, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=list(value))
-        elif value is None:
-            parser.add_argument(flag, default=None)
+        elif value is None:  # optional: a number (``float | None``) or a path
+            parser.add_argument(flag, type=float if "float" in str(field.type) else str, default=None)
         else:
             parser.add_argument(flag, type=type(value), default=value)
     known, _ = parser.parse_known_args(argv)

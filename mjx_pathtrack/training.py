@@ -81,6 +81,9 @@ class TrainConfig:
     value_layers: tuple[int, ...] = (256, 128)
     init_noise_std: float = 0.5
     mean_init_scale: float = 0.01
+    #: bound of the policy mean, ``mean_clip * x / (1 + |x|)`` (Brax's ``mean_clip_scale``), like the
+    #: papers' tanh mean head (REFERENCE §6.1); None: an unbounded mean
+    mean_clip: float | None = None
     seed: int = 0
     task: str = "tracking"
     ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
@@ -207,6 +210,7 @@ def ppo_networks(config: TrainConfig):
                              value_hidden_layer_sizes=config.value_layers,
                              distribution_type="normal", noise_std_type="log",
                              init_noise_std=config.init_noise_std,
+                             mean_clip_scale=getattr(config, "mean_clip", None),
                              mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
                              mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
                                                           distribution="truncated_normal"))

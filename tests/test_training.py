@@ -103,3 +103,22 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
     with pytest.raises(SystemExit):
         cli.parse_args(["--task", "juggling"])
+
+
+def test_mean_clip_bounds_the_policy_mean():
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    from mjx_pathtrack.training import ppo_networks
+
+    obs = jax.random.uniform(jax.random.PRNGKey(1), (64, 10), minval=-1, maxval=1)
+    norm = running_statistics.init_state(specs.Array((10,), np.dtype("float32")))
+    means = {}
+    for clip in (None, 1.0):  # a mean head initialised far too large: only the bound keeps it inside (-1, 1)
+        config = TrainConfig(policy_layers=(16,), value_layers=(8,), mean_init_scale=30.0, mean_clip=clip)
+        nets = ppo_networks(config)(10, 3, preprocess_observations_fn=running_statistics.normalize)
+        params = (norm, nets.policy_network.init(jax.random.PRNGKey(0)))
+        means[clip] = np.asarray(ppo_nets.make_inference_fn(nets)(params, deterministic=True)(obs, None)[0])
+    assert np.abs(means[None]).max() > 2.0
+    assert np.abs(means[1.0]).max() < 1.0
+    np.testing.assert_allclose(means[1.0], means[None] / (1.0 + np.abs(means[None])), rtol=1e-5, atol=1e-6)

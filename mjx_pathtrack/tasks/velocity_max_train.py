@@ -58,6 +58,7 @@ class VelocityTrainConfig:
     value_layers: tuple[int, ...] = (64, 64)
     init_noise_std: float = 0.5
     mean_init_scale: float = 0.01
+    mean_clip: float | None = None  # bound of the policy mean (see training.TrainConfig.mean_clip)
     seed: int = 0
 
     def env_config(self) -> V.VelocityMaxConfig:
@@ -136,6 +137,8 @@ def parse_train_args(argv) -> tuple[argparse.Namespace, VelocityTrainConfig]:
         flag = "--" + field.name.replace("_", "-")
         if isinstance(value, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=list(value))
+        elif value is None:  # optional number
+            parser.add_argument(flag, type=float, default=None)
         elif field.name == "mode":
             parser.add_argument(flag, choices=V.MODES, default=value)
         else:
