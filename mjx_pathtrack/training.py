@@ -210,7 +210,7 @@ def ppo_networks(config: TrainConfig):
                              value_hidden_layer_sizes=config.value_layers,
                              distribution_type="normal", noise_std_type="log",
                              init_noise_std=config.init_noise_std,
-                             mean_clip_scale=getattr(config, "mean_clip", None),
+                             mean_clip_scale=config.mean_clip,
                              mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
                              mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
                                                           distribution="truncated_normal"))
