@@ -38,10 +38,12 @@ PAPER_TABLE1 = {(240, "safe"): (0.91, 0.0, 1.00, 1.00), (240, "penalty_soft"): (
                 (20, "penalty_soft"): (0.44, 0.012, 0.93, 1.14), (20, "penalty_hard"): (0.58, 0.415, 1.14, 1.69)}
 
 
-def plan(budget_scale: float, seed: int) -> list[T.VelocityTrainConfig]:
-    runs = [T.VelocityTrainConfig(hz=hz, mode="safe", num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed)
+def plan(budget_scale: float, seed: int, mean_clip: float | None = None) -> list[T.VelocityTrainConfig]:
+    runs = [T.VelocityTrainConfig(hz=hz, mode="safe", num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
+                                  mean_clip=mean_clip)
             for hz in V.FREQUENCIES]
-    runs += [T.VelocityTrainConfig(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed)
+    runs += [T.VelocityTrainConfig(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
+                                   mean_clip=mean_clip)
              for hz in PENALTY_FREQUENCIES for mode in ("penalty_soft", "penalty_hard")]
     return runs
 
@@ -99,6 +101,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="runs/paper001")
     parser.add_argument("--budget-scale", type=float, default=1.0, help="multiply every run's env steps")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--mean-clip", type=float, default=None,
+                        help="bound of the policy mean for every run (1.0: the papers' tanh-like bound)")
     parser.add_argument("--only", nargs="+", default=None, help="run names to do, e.g. safe_10 penalty_soft_240")
     parser.add_argument("--tables-only", action="store_true", help="only rebuild the tables from saved reports")
     args = parser.parse_args(argv)
@@ -107,7 +111,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     results: dict[str, dict] = {}
     t0 = time.monotonic()
-    for config in plan(args.budget_scale, args.seed):
+    for config in plan(args.budget_scale, args.seed, args.mean_clip):
         directory = run_dir(out, config)
         name = directory.name
         report = load_report(directory, config)
