@@ -39,12 +39,12 @@ PAPER_TABLE1 = {(240, "safe"): (0.91, 0.0, 1.00, 1.00), (240, "penalty_soft"): (
 
 
 def plan(budget_scale: float, seed: int, mean_clip: float | None = None) -> list[T.VelocityTrainConfig]:
-    runs = [T.VelocityTrainConfig(hz=hz, mode="safe", num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
-                                  mean_clip=mean_clip)
-            for hz in V.FREQUENCIES]
-    runs += [T.VelocityTrainConfig(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
-                                   mean_clip=mean_clip)
-             for hz in PENALTY_FREQUENCIES for mode in ("penalty_soft", "penalty_hard")]
+    def run(hz, mode):
+        return T.VelocityTrainConfig(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
+                                     mean_clip=mean_clip)
+
+    runs = [run(hz, "safe") for hz in V.FREQUENCIES]
+    runs += [run(hz, mode) for hz in PENALTY_FREQUENCIES for mode in ("penalty_soft", "penalty_hard")]
     return runs
 
 

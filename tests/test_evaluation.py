@@ -159,7 +159,8 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
     result = subprocess.run([sys.executable, "evaluate.py", str(run), "--episodes", "3", "--timing-decisions", "5",
-                             "--terminate-deviation", "0.3", "--out", str(out)], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+                             "--terminate-deviation", "0.3", "--out", str(out)],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for heading in ("Table I", "Table VI", "Table IX", "Limit audit", "OK (<= 1)"):
         assert heading in result.stdout
@@ -188,12 +189,12 @@ def test_export_dir_gives_the_same_policy(tiny_run, tmp_path):
     key = jax.random.PRNGKey(0)
     np.testing.assert_allclose(np.asarray(from_export.policy(obs, key)), np.asarray(from_run.policy(obs, key)),
                                atol=1e-5)
+    with pytest.raises(R.EvaluationError, match="only the deterministic policy"):  # an export holds the mean only
+        R.load_policy_source(str(tmp_path / "export"), deterministic=False)
 
 
-def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run, tmp_path):
-    from mjx_pathtrack.export import export_policy
-
-    run, (cfg, env, nets, params) = tiny_run
+def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run):
+    run, (cfg, env, _, _) = tiny_run
     mean = R.load_policy_source(str(run)).policy
     sampled = R.load_policy_source(str(run), deterministic=False).policy
     obs = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (4096, env.observation_size)), jnp.float32)
@@ -201,12 +202,6 @@ def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run, tmp_p
     assert np.all(np.asarray(a) != np.asarray(b))  # fresh noise for every key, episode and joint
     noise = np.asarray(a - mean(obs, jax.random.PRNGKey(0)))
     assert abs(noise.mean()) < 0.05 and 0.5 * cfg.init_noise_std < noise.std() < 2 * cfg.init_noise_std
-    from brax.training.agents.ppo import networks as ppo_nets
-
-    export_policy(tmp_path / "export", ppo_nets.make_inference_fn(nets), params, env, "iiwa",
-                  robots.load_robot("iiwa").joint_names)
-    with pytest.raises(R.EvaluationError, match="only the deterministic policy"):
-        R.load_policy_source(str(tmp_path / "export"), deterministic=False)
 
 
 def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):

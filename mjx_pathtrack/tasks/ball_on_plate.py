@@ -61,6 +61,11 @@ CARTESIAN_BLOCKS = (("target_point", 3), ("target_minus_executed_point", 3))
 SENSOR_BLOCKS = (("ball_xy_previous", 2), ("ball_xy", 2))  # only with the ball sensor
 
 
+def extra_blocks(sensor: bool) -> tuple[tuple[str, int], ...]:
+    """The blocks the task adds to the path-tracking observation, with or without the ball sensor."""
+    return CARTESIAN_BLOCKS + (SENSOR_BLOCKS if sensor else ())
+
+
 @dataclasses.dataclass(frozen=True)
 class BallConfig:
     """Task settings. ``reward``: weight of R_ball (0: off); ``sensor``: ball position in the
@@ -188,7 +193,7 @@ class BallOnPlateEnv(PathTrackingEnv):
     task_failure = "ball_fell"
 
     def extra_observation_blocks(self) -> list[tuple[str, int]]:
-        return list(CARTESIAN_BLOCKS + (SENSOR_BLOCKS if self.ball_config.sensor else ()))
+        return list(extra_blocks(self.ball_config.sensor))
 
     def metric_names(self) -> tuple[str, ...]:
         return super().metric_names() + ("reward/ball", "ball_fell")
@@ -236,8 +241,7 @@ class BallOnPlateEnv(PathTrackingEnv):
 
 def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) -> int:
     """REFERENCE §2: ``3 n + n (N + 1) + 2 + N + 6 (+ 4 with the ball sensor)``."""
-    extra = CARTESIAN_BLOCKS + (SENSOR_BLOCKS if sensor else ())
-    return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra)
+    return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra_blocks(sensor))
 
 
 def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallConfig = BallConfig(),
