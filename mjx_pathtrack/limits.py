@@ -524,8 +524,14 @@ def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
     J = delta / dt
     a_cont = J * (-0.5 * dt + jnp.sqrt(jnp.maximum(0.25 * dt * dt + 2.0 * c * dt / J, 0.0)))
     m_cont = jnp.maximum(jnp.ceil((a_cont + settle - delta) / delta), 0.0)
+    # The branches (count m of full-jerk steps; x = a1 - m delta in (0, delta - settle] or
+    # (-settle, 0]) tile a1 > 0 without gaps in exact arithmetic. In float32 a root on a branch
+    # boundary can land a few ulps outside both of its branches, so a root up to ``tol`` beyond
+    # a branch's upper end is accepted and clamped down to that end (lower a1 = lower peak, so
+    # safe); m_cont is an estimate, so its neighbours on both sides are tried.
+    tol = 64.0 * float(np.finfo(np.float32).eps) * (jnp.abs(c) + delta)
     best = jnp.full_like(c, -jnp.inf)
-    for shift in (0.0, 1.0):
+    for shift in (-1.0, 0.0, 1.0):
         m = jnp.maximum(m_cont - shift, 0.0)
         K = c - 0.5 * delta * m * (m + 1.0)
         # x = a1 - m*delta > 0 : last step ends at -settle
@@ -533,8 +539,8 @@ def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
         x_pos = (-b + jnp.sqrt(jnp.maximum(b * b + 16.0 * (m + 1.0) * K * settle, 0.0))) / (4.0 * (m + 1.0))
         # x <= 0 (m >= 1): zero crossing inside the last full-jerk step
         x_neg = delta * (-(m + 0.5) + jnp.sqrt(jnp.maximum((m + 0.5) ** 2 + 2.0 * K / delta, 0.0)))
-        for x, valid in ((x_pos, (K > 0) & (x_pos > 0) & (x_pos <= delta - settle)),
-                         (x_neg, (m >= 1) & (x_neg <= 0) & (x_neg > -settle))):
+        for x, valid in ((jnp.minimum(x_pos, delta - settle), (K > 0) & (x_pos > 0) & (x_pos <= delta - settle + tol)),
+                         (jnp.minimum(x_neg, 0.0), (m >= 1) & (x_neg <= tol) & (x_neg > -settle))):
             a1 = x + m * delta
             best = jnp.where(valid, jnp.maximum(best, a1), best)
     # a1 <= 0 and v never rises after the step: only the in-step peak matters. It is checked
