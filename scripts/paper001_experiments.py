@@ -1,15 +1,16 @@
 """Paper 001 experiments on the velocity-maximisation task: Table II (trained vs optimal average
 velocity per decision frequency) and Table I (penalty baselines vs the safe action space).
 
-    python scripts/paper001_experiments.py --out runs/paper001            # all runs (~22 min, 2 shared CPU cores)
+    python scripts/paper001_experiments.py --out runs/paper001            # all runs (~40 min on 2 idle CPU cores)
     python scripts/paper001_experiments.py --out runs/paper001 --tables-only   # rebuild tables from reports
 
 Runs PPO (:mod:`mjx_pathtrack.tasks.velocity_max_train`) for ``mode="safe"`` at 10, 20, 120 and
 240 Hz and for ``penalty_soft`` / ``penalty_hard`` at 20 and 240 Hz (Table I's frequencies), one
 run directory each (``<out>/<mode>_<hz>``); a run whose ``report.json`` exists for the same config
-is reused. Writes ``<out>/results.json`` and ``<out>/tables.md``. Budgets (env steps per run) are
-sized for a shared 2-core CPU, far below the paper's training until convergence; the tables say
-how many episodes each policy saw.
+is reused. Writes ``<out>/results.json`` and ``<out>/tables.md``. Budgets (env steps per run) fit
+one CPU session, below the paper's training until convergence; the tables say how many episodes
+each policy saw. The penalty baselines get the budget of the safe run at their frequency. Every
+run bounds its policy mean (``--mean-clip``, default 1.0 as in ``VelocityTrainConfig``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from mjx_pathtrack.tasks import velocity_max as V
 from mjx_pathtrack.tasks import velocity_max_train as T
 
 #: env steps per run at each frequency (scaled by --budget-scale)
-BUDGET = {10: 150_000, 20: 200_000, 120: 600_000, 240: 900_000}
+BUDGET = {10: 750_000, 20: 1_000_000, 120: 10_000_000, 240: 12_000_000}
 #: Table I frequencies (paper 001)
 PENALTY_FREQUENCIES = (240, 20)
 #: paper 001 Table II (average velocity: random, trained, optimal) and Table I (avg velocity,
@@ -38,7 +39,7 @@ PAPER_TABLE1 = {(240, "safe"): (0.91, 0.0, 1.00, 1.00), (240, "penalty_soft"): (
                 (20, "penalty_soft"): (0.44, 0.012, 0.93, 1.14), (20, "penalty_hard"): (0.58, 0.415, 1.14, 1.69)}
 
 
-def plan(budget_scale: float, seed: int, mean_clip: float | None = None) -> list[T.VelocityTrainConfig]:
+def plan(budget_scale: float, seed: int, mean_clip: float | None = 1.0) -> list[T.VelocityTrainConfig]:
     def run(hz, mode):
         return T.VelocityTrainConfig(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
                                      mean_clip=mean_clip)
@@ -101,8 +102,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="runs/paper001")
     parser.add_argument("--budget-scale", type=float, default=1.0, help="multiply every run's env steps")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--mean-clip", type=float, default=None,
-                        help="bound of the policy mean for every run (1.0: the papers' tanh-like bound)")
+    parser.add_argument("--mean-clip", type=T.optional_float, default=T.VelocityTrainConfig().mean_clip,
+                        help="bound of the policy mean for every run ('none': unbounded)")
     parser.add_argument("--only", nargs="+", default=None, help="run names to do, e.g. safe_10 penalty_soft_240")
     parser.add_argument("--tables-only", action="store_true", help="only rebuild the tables from saved reports")
     args = parser.parse_args(argv)

@@ -58,7 +58,10 @@ class VelocityTrainConfig:
     value_layers: tuple[int, ...] = (64, 64)
     init_noise_std: float = 0.5
     mean_init_scale: float = 0.01
-    mean_clip: float | None = None  # bound of the policy mean (see training.TrainConfig.mean_clip)
+    #: bound of the policy mean (training.TrainConfig.mean_clip), like the papers' tanh mean head;
+    #: without it the 120/240 Hz policies drift to means far outside [-1, 1] and stop exploring
+    #: (README "Paper 001 experiments"); ``--mean-clip none`` turns it off
+    mean_clip: float | None = 1.0
     seed: int = 0
 
     def env_config(self) -> V.VelocityMaxConfig:
@@ -126,6 +129,16 @@ def evaluate_run(env: V.VelocityMaxEnv, trained: V.Policy, episodes: int, key) -
     return {"trained": info["trained"], "random": info["random"], "optimal": {"avg_velocity": best, **optimal}}
 
 
+def optional_float(text: str) -> float | None:
+    """A float, or ``None`` for "none"/"off" (flags of ``float | None`` fields)."""
+    if text.strip().lower() in ("none", "off"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
+
+
 def parse_train_args(argv) -> tuple[argparse.Namespace, VelocityTrainConfig]:
     defaults = VelocityTrainConfig()
     parser = argparse.ArgumentParser(prog="python -m mjx_pathtrack.tasks.velocity_max train",
@@ -137,8 +150,8 @@ def parse_train_args(argv) -> tuple[argparse.Namespace, VelocityTrainConfig]:
         flag = "--" + field.name.replace("_", "-")
         if isinstance(value, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=list(value))
-        elif value is None:  # optional number
-            parser.add_argument(flag, type=float, default=None)
+        elif value is None or "None" in str(field.type):  # optional number, "none" = off
+            parser.add_argument(flag, type=optional_float, default=value)
         elif field.name == "mode":
             parser.add_argument(flag, choices=V.MODES, default=value)
         else:
