@@ -33,9 +33,11 @@ def task_presets() -> dict[str, dict]:
 
 
 def parse_args(argv=None):
-    from mjx_pathtrack.training import TrainConfig, preset
+    from mjx_pathtrack.env import KNOTS_FRAMES
+    from mjx_pathtrack.training import EXECUTORS, TASKS, TrainConfig, preset
 
     defaults = TrainConfig()
+    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
@@ -60,7 +62,7 @@ def parse_args(argv=None):
         elif value is None:  # optional: a number (``float | None``) or a path
             parser.add_argument(flag, type=float if "float" in str(field.type) else str, default=None)
         else:
-            parser.add_argument(flag, type=type(value), default=value)
+            parser.add_argument(flag, type=type(value), default=value, choices=choices.get(field.name))
     known, _ = parser.parse_known_args(argv)
     try:
         parser.set_defaults(**preset(known.robot, known.task))

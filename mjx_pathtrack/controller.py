@@ -107,7 +107,8 @@ class OnlineTracker:
 
     policy: ``ExportedPolicy`` (limits, dt, n_next, path_joints, max_dis_between_knots taken from
     its manifest) or any callable ``obs [obs_size] -> action [n]`` (then ``limits``, ``dt``,
-    ``n_next``, ``max_dis_between_knots`` are required; ``path_joints`` defaults to all);
+    ``n_next``, ``max_dis_between_knots`` are required; ``path_joints`` defaults to all,
+    ``knots_frame`` to the papers' "absolute" observation);
     position ``[n]`` current joint positions, velocity / acceleration ``[n]`` (default 0);
     controller_dt [s]: setpoint period, must divide ``dt``; max_knots: capacity of the reference.
     Raises ``ValueError`` for inconsistent inputs or an unsafe initial state.
@@ -116,7 +117,7 @@ class OnlineTracker:
     def __init__(self, policy: Callable, position, velocity=None, acceleration=None, *,
                  controller_dt: float, limits: L.JointLimits | None = None, dt: float | None = None,
                  n_next: int | None = None, max_dis_between_knots: float | None = None, path_joints=None,
-                 max_knots: int = MAX_KNOTS):
+                 max_knots: int = MAX_KNOTS, knots_frame: str | None = None):
         manifest = getattr(policy, "manifest", None)
         if manifest is not None:
             lim = manifest["limits"]
@@ -125,14 +126,16 @@ class OnlineTracker:
                 limits=L.JointLimits(none_inf(lim["pos_min"], -1), none_inf(lim["pos_max"], 1), lim["vel"], lim["acc"],
                                      lim["jerk"], names=manifest.get("joint_names")),
                 dt=manifest["dt"], n_next=manifest["n_next"], max_dis_between_knots=manifest["max_dis_between_knots"],
-                path_joints=manifest["path_joints"])
+                path_joints=manifest["path_joints"], knots_frame=manifest.get("knots_frame", "absolute"))
             given = dict(limits=limits, dt=dt, n_next=n_next, max_dis_between_knots=max_dis_between_knots,
-                         path_joints=path_joints)
+                         path_joints=path_joints, knots_frame=knots_frame)
             clash = [k for k, v in given.items() if v is not None]
             if clash:
                 raise ValueError(f"{', '.join(clash)} come(s) from the export manifest; do not pass them")
             limits, dt, n_next = from_manifest["limits"], from_manifest["dt"], from_manifest["n_next"]
             max_dis_between_knots, path_joints = from_manifest["max_dis_between_knots"], from_manifest["path_joints"]
+            knots_frame = from_manifest["knots_frame"]
+        knots_frame = "absolute" if knots_frame is None else knots_frame
         if not callable(policy):
             raise ValueError(f"policy must be callable obs -> action, got {type(policy).__name__}")
         missing = [k for k, v in dict(limits=limits, dt=dt, n_next=n_next,
@@ -177,7 +180,7 @@ class OnlineTracker:
         here = np.asarray(p, np.float64)[self.path_joints]
         placeholder = S.make_path(np.stack([here, here + 1e-3]), self.max_knots)
         config = EnvConfig(dt=dt, n_next=int(n_next), substeps=k, deviation_samples=max(k, 1), terminate_deviation=None,
-                           adjustable=True)
+                           adjustable=True, knots_frame=knots_frame)
         self.env = PathTrackingEnv(limits, jax.tree.map(lambda x: x[None], placeholder), float(max_dis_between_knots),
                                    config, path_joints=self.path_joints)
         self.observation_size, self.n_joints, self.n_path = self.env.observation_size, n, m
@@ -195,7 +198,7 @@ class OnlineTracker:
         self._time_steps = 0
         # one compilation per configuration (shared by trackers with equal settings)
         key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), dt, k, int(n_next),
-               float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots)
+               float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots, knots_frame)
         if key not in _COMPILED:
             _COMPILED[key] = (jax.jit(functools.partial(_step_core, self.env, controller_dt)), jax.jit(_replace_core),
                               jax.jit(self.env.observe))

@@ -37,6 +37,10 @@ from mjx_pathtrack.executors import KinematicExecutor
 Array = jax.Array
 
 
+#: how the observation shows the next knots (:class:`EnvConfig` ``knots_frame``)
+KNOTS_FRAMES = ("absolute", "relative")
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """Episode, observation and termination settings (defaults: papers' iiwa random-path net).
@@ -51,6 +55,10 @@ class EnvConfig:
     adjustable: each environment carries its own copy of its path so that the reference ahead
     can be replaced during the episode (:meth:`PathTrackingEnv.replace_reference`); off for
     training, where the state only holds the dataset index (much less memory per environment).
+    knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
+    ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
+    max_dis_between_knots``): same size, but the policy need not learn the subtraction (README
+    "Environment and training" measures the difference).
     """
 
     dt: float = 0.1
@@ -70,6 +78,11 @@ class EnvConfig:
     deviation_weights: tuple[float, ...] | None = None
     reward: R.RewardWeights = R.RewardWeights()
     adjustable: bool = False
+    knots_frame: str = "absolute"
+
+    def __post_init__(self):
+        if self.knots_frame not in KNOTS_FRAMES:
+            raise ValueError(f"unknown knots_frame {self.knots_frame!r}; known: {', '.join(KNOTS_FRAMES)}")
 
     def max_episode_steps(self) -> int:
         """Upper bound of the steps of any episode (the whole path at full duration)."""
@@ -306,11 +319,15 @@ class PathTrackingEnv(Env):
         window = S.knot_window(path, track.s, cfg.n_next)
         knots_lo, knots_hi = lim.pos_min[self.path_joints], lim.pos_max[self.path_joints]
         scale = cfg.n_next * self.max_dis
+        if cfg.knots_frame == "relative":
+            knots = (window.knots - track.p[self.path_joints]) / scale
+        else:
+            knots = normalize_position(window.knots, knots_lo, knots_hi)
         obs = jnp.concatenate([
             normalize_position(track.p, lim.pos_min, lim.pos_max),
             track.v / lim.vel,
             track.a / lim.acc,
-            normalize_position(window.knots, knots_lo, knots_hi).reshape(-1),
+            knots.reshape(-1),
             (-1.0 + 2.0 * window.offset / self.max_dis)[None],
             (-1.0 + 2.0 * window.state_length / scale)[None],
             -1.0 + 2.0 * window.knot_distances / scale,

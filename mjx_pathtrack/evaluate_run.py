@@ -69,7 +69,8 @@ def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
         except export.ExportError as e:
             raise EvaluationError(str(e)) from e
         man = exported.manifest
-        config = TrainConfig(robot=man["robot"], dt=float(man["dt"]), n_next=int(man["n_next"]))
+        config = TrainConfig(robot=man["robot"], dt=float(man["dt"]), n_next=int(man["n_next"]),
+                             knots_frame=man.get("knots_frame", "absolute"))
         call = exported._exported.call  # pure JAX: jit/vmap friendly
         return PolicySource(lambda obs, key: call(obs), config, float(man["max_dis_between_knots"]), "export", root)
     config_file, params_file = root / "config.json", root / "params.pkl"

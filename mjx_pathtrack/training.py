@@ -58,6 +58,9 @@ class TrainConfig:
     executor: str = "kinematic"
     dt: float = 0.1
     n_next: int = 8
+    #: observation of the next knots: "absolute" (the papers') or "relative" (knot - position,
+    #: env.EnvConfig.knots_frame)
+    knots_frame: str = "absolute"
     alpha: float = 2.0
     beta: float = 0.9
     deviation_threshold: float = 0.25
@@ -100,7 +103,7 @@ class TrainConfig:
             from mjx_pathtrack.tasks import humanoid_balance
 
             weights = humanoid_balance.balance_weights(self.balance_reward, weights)
-        return EnvConfig(dt=self.dt, n_next=self.n_next, duration=self.duration,
+        return EnvConfig(dt=self.dt, n_next=self.n_next, knots_frame=self.knots_frame, duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
                          deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
                          reward=weights)

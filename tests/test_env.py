@@ -138,6 +138,31 @@ def test_normalize_position_wraps_continuous_joints():
     np.testing.assert_allclose(np.asarray(out), [0.5, 0.5], atol=1e-6)
 
 
+def test_relative_knots_show_knot_minus_position_and_keep_the_rest():
+    """knots_frame="relative": the knot block is (knot - p) / (N max_dis), clipped to [-1, 1];
+    every other block equals the papers' absolute observation of the same state."""
+    from mjx_pathtrack import spline as S
+
+    paths = random_walk_paths()
+    absolute = PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, EnvConfig())
+    relative = PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, EnvConfig(knots_frame="relative"))
+    assert relative.observation_size == absolute.observation_size
+    state = relative.reset(jax.random.PRNGKey(3))
+    step = jax.jit(relative.step)
+    for i in range(4):  # move off the path start so that p and the knots differ
+        state = step(state, jax.random.uniform(jax.random.PRNGKey(i), (7,), minval=-1.0, maxval=1.0))
+    track = state.pipeline_state
+    window = S.knot_window(relative.episode_path(track), track.s, 8)
+    expected = np.clip((np.asarray(window.knots) - np.asarray(track.p)) / (8 * 0.5), -1.0, 1.0).reshape(-1)
+    obs_rel, obs_abs = np.asarray(relative.observe(track)), np.asarray(absolute.observe(track))
+    block = slice(21, 21 + 7 * 9)
+    np.testing.assert_allclose(obs_rel[block], expected, atol=1e-6)
+    assert np.max(np.abs(expected)) > 1e-3  # the state is off the knots: a real check
+    np.testing.assert_array_equal(np.delete(obs_rel, np.r_[block]), np.delete(obs_abs, np.r_[block]))
+    with pytest.raises(ValueError, match="knots_frame"):
+        EnvConfig(knots_frame="polar")
+
+
 def test_bad_construction_errors():
     paths = random_walk_paths(n_paths=2)
     with pytest.raises(ValueError, match="path joints"):

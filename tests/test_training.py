@@ -103,6 +103,9 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
     with pytest.raises(SystemExit):
         cli.parse_args(["--task", "juggling"])
+    assert cli.parse_args(["--knots-frame", "relative"])[1].env_config().knots_frame == "relative"
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--knots-frame", "polar"])
 
 
 def test_mean_clip_bounds_the_policy_mean():
