@@ -1,6 +1,6 @@
 """End-to-end Brax PPO training throughput (env steps/s including the updates).
 
-Run: python benchmarks/bench_train.py [--num-envs 2048] [--num-timesteps 2000000]
+Run: python benchmarks/bench_train.py [--num-envs 2048] [--num-timesteps 2000000] [--layers 128 64]
 Trains the default iiwa config in a temporary directory and prints the env-steps/s between the
 first and the last progress report (compilation excluded), next to the env-step rate of the
 same environment without learning, measured in the same run.
@@ -25,9 +25,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--num-envs", type=int, default=2048)
     parser.add_argument("--num-timesteps", type=int, default=2_000_000)
+    parser.add_argument("--layers", type=int, nargs="+", default=list(TrainConfig().policy_layers),
+                        help="hidden layers of both the policy and the value network")
     args = parser.parse_args()
     config = dataclasses.replace(TrainConfig(), num_envs=args.num_envs, num_timesteps=args.num_timesteps,
-                                 batch_size=args.num_envs // 8, num_evals=3, eval_episodes=16)
+                                 batch_size=args.num_envs // 8, num_evals=3, eval_episodes=16,
+                                 policy_layers=tuple(args.layers), value_layers=tuple(args.layers))
     with tempfile.TemporaryDirectory() as out:
         train(config, out, verbose=False)
         rows = list(csv.DictReader(open(Path(out) / "progress.csv")))
@@ -46,7 +49,7 @@ def main() -> None:
         state = step(state, actions)
     jax.block_until_ready(state)
     env_only = 10 * args.num_envs / (time.perf_counter() - t0)
-    print(f"device: {jax.devices()[0].platform}  num_envs {args.num_envs}")
+    print(f"device: {jax.devices()[0].platform}  num_envs {args.num_envs}  layers {tuple(args.layers)}")
     print(f"PPO training (rollouts + updates): {training:12,.0f} env-steps/s")
     print(f"env.step alone                   : {env_only:12,.0f} env-steps/s  (training = {training / env_only:.2f} of it)")
 

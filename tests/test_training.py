@@ -103,7 +103,10 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
     with pytest.raises(SystemExit):
         cli.parse_args(["--task", "juggling"])
-    assert cli.parse_args(["--knots-frame", "relative"])[1].env_config().knots_frame == "relative"
+    assert cli.parse_args(["--knots-frame", "absolute"])[1].env_config().knots_frame == "absolute"
+    assert TrainConfig().knots_frame == "relative"
+    # a run directory from before the option existed observed absolute knots
+    assert TrainConfig.from_json('{"robot": "iiwa"}').knots_frame == "absolute"
     with pytest.raises(SystemExit):
         cli.parse_args(["--knots-frame", "polar"])
 
