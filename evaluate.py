@@ -35,6 +35,10 @@ def parse_args(argv=None):
     parser.add_argument("--terminate-deviation", type=float, default=None, metavar="RAD",
                         help="end episodes at this weighted deviation instead of the training config's "
                              "(inf: never, e.g. to see whether a task failure follows a deviation)")
+    parser.add_argument("--end-tolerance", type=float, default=None, metavar="RAD",
+                        help="count the path end as reached (and brake) this arc length before it, instead of the "
+                             "training config's (0: the papers' rule); a deterministic policy can stall just short "
+                             "of the end")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--out", default=None, help="output directory (default SOURCE/eval)")
     return parser.parse_args(argv)
@@ -54,6 +58,11 @@ def main(argv=None) -> int:
                 raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
             source = dataclasses.replace(source, config=dataclasses.replace(
                 source.config, terminate_deviation=args.terminate_deviation))
+        if args.end_tolerance is not None:
+            if not (args.end_tolerance >= 0 and args.end_tolerance < float("inf")):
+                raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
+            source = dataclasses.replace(source, config=dataclasses.replace(
+                source.config, end_tolerance=args.end_tolerance))
         env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
@@ -64,7 +73,8 @@ def main(argv=None) -> int:
     meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
             "seed": args.seed, "full_paths": args.full_paths,
             "actions": "sampled" if args.stochastic else "deterministic",
-            "terminate_deviation": source.config.terminate_deviation, "plot_episode": episode}
+            "terminate_deviation": source.config.terminate_deviation, "end_tolerance": source.config.end_tolerance,
+            "plot_episode": episode}
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
              f"{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))

@@ -108,7 +108,8 @@ class OnlineTracker:
     policy: ``ExportedPolicy`` (limits, dt, n_next, path_joints, max_dis_between_knots taken from
     its manifest) or any callable ``obs [obs_size] -> action [n]`` (then ``limits``, ``dt``,
     ``n_next``, ``max_dis_between_knots`` are required; ``path_joints`` defaults to all,
-    ``knots_frame`` to the papers' "absolute" observation);
+    ``knots_frame`` to the papers' "absolute" observation); end_tolerance [rad]: brake to a stop
+    once within this arc length of the path end (``EnvConfig.end_tolerance``; 0: at the end);
     position ``[n]`` current joint positions, velocity / acceleration ``[n]`` (default 0);
     controller_dt [s]: setpoint period, must divide ``dt``; max_knots: capacity of the reference.
     Raises ``ValueError`` for inconsistent inputs or an unsafe initial state.
@@ -117,7 +118,7 @@ class OnlineTracker:
     def __init__(self, policy: Callable, position, velocity=None, acceleration=None, *,
                  controller_dt: float, limits: L.JointLimits | None = None, dt: float | None = None,
                  n_next: int | None = None, max_dis_between_knots: float | None = None, path_joints=None,
-                 max_knots: int = MAX_KNOTS, knots_frame: str | None = None):
+                 max_knots: int = MAX_KNOTS, knots_frame: str | None = None, end_tolerance: float = 0.0):
         manifest = getattr(policy, "manifest", None)
         if manifest is not None:
             lim = manifest["limits"]
@@ -180,7 +181,7 @@ class OnlineTracker:
         here = np.asarray(p, np.float64)[self.path_joints]
         placeholder = S.make_path(np.stack([here, here + 1e-3]), self.max_knots)
         config = EnvConfig(dt=dt, n_next=int(n_next), substeps=k, deviation_samples=max(k, 1), terminate_deviation=None,
-                           adjustable=True, knots_frame=knots_frame)
+                           adjustable=True, knots_frame=knots_frame, end_tolerance=float(end_tolerance))
         self.env = PathTrackingEnv(limits, jax.tree.map(lambda x: x[None], placeholder), float(max_dis_between_knots),
                                    config, path_joints=self.path_joints)
         self.observation_size, self.n_joints, self.n_path = self.env.observation_size, n, m
@@ -198,7 +199,8 @@ class OnlineTracker:
         self._time_steps = 0
         # one compilation per configuration (shared by trackers with equal settings)
         key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), dt, k, int(n_next),
-               float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots, knots_frame)
+               float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots, knots_frame,
+               float(end_tolerance))
         if key not in _COMPILED:
             _COMPILED[key] = (jax.jit(functools.partial(_step_core, self.env, controller_dt)), jax.jit(_replace_core),
                               jax.jit(self.env.observe))
@@ -386,7 +388,7 @@ def _step_core(env: PathTrackingEnv, controller_dt: float, core: _Core, action: 
     action = jnp.where(fault, 0.0, action)
     new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action)
     length = new.path.length
-    reached = new.s >= length
+    reached = env.end_reached(new.path, new.s)
     new = new._replace(braking=end_braking | reached)
     braking = end_braking | fault
     stopped = braking & _at_rest(env.limits, new.v, new.a)

@@ -55,6 +55,9 @@ class EnvConfig:
     adjustable: each environment carries its own copy of its path so that the reference ahead
     can be replaced during the episode (:meth:`PathTrackingEnv.replace_reference`); off for
     training, where the state only holds the dataset index (much less memory per environment).
+    end_tolerance [rad]: the end counts as reached (braking starts) once the reference position
+    is within this arc length of the path end; 0 (the papers): only at the end itself. A
+    deterministic policy can stall just short of the end (README "Environment and training").
     knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
     ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
     max_dis_between_knots``): same size, but the policy need not learn the subtraction (README
@@ -79,10 +82,13 @@ class EnvConfig:
     reward: R.RewardWeights = R.RewardWeights()
     adjustable: bool = False
     knots_frame: str = "absolute"
+    end_tolerance: float = 0.0
 
     def __post_init__(self):
         if self.knots_frame not in KNOTS_FRAMES:
             raise ValueError(f"unknown knots_frame {self.knots_frame!r}; known: {', '.join(KNOTS_FRAMES)}")
+        if not (np.isfinite(self.end_tolerance) and self.end_tolerance >= 0.0):
+            raise ValueError(f"end_tolerance must be a finite number >= 0 [rad], got {self.end_tolerance}")
 
     def max_episode_steps(self) -> int:
         """Upper bound of the steps of any episode (the whole path at full duration)."""
@@ -234,7 +240,7 @@ class PathTrackingEnv(Env):
         steps_per_rad = track.max_steps / jnp.maximum(old.length - track.s_start, 1e-9)
         remaining = jnp.ceil((path.length - track.s) * steps_per_rad).astype(jnp.int32)
         track = track._replace(path=path, n_knots=path.n_knots, max_steps=track.steps + jnp.maximum(remaining, 1),
-                               braking=track.braking & (track.s >= path.length))
+                               braking=track.braking & self.end_reached(path, track.s))
         return state.replace(pipeline_state=track, obs=self.observe(track))
 
     def transition(self, track: TrackState, action: Array):
@@ -258,7 +264,7 @@ class PathTrackingEnv(Env):
         terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
                                  d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
         steps = track.steps + 1
-        reached_end = s1 >= path.length
+        reached_end = self.end_reached(path, s1)
         braking = track.braking | (reached_end & cfg.brake_at_end)
         new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
         task_terms, failed, task_metrics = self.task_step(track, new, sensors)
@@ -279,6 +285,10 @@ class PathTrackingEnv(Env):
                    "terminated_deviation": (done_dev & ~done_stop).astype(jnp.float32),
                    "task_failed": failed.astype(jnp.float32), **task_metrics}
         return new, reward, done, metrics
+
+    def end_reached(self, path: S.Path, s: Array) -> Array:
+        """bool ``[]``: arc position ``s`` [rad] is at the end of ``path`` (within ``end_tolerance``)."""
+        return s >= path.length - self.config.end_tolerance
 
     def task_step(self, before: TrackState, after: TrackState, sensors: dict[str, Array]
                   ) -> tuple[dict[str, Array], Array, dict[str, Array]]:

@@ -66,6 +66,8 @@ class TrainConfig:
     beta: float = 0.9
     deviation_threshold: float = 0.25
     terminate_deviation: float = 0.25
+    #: [rad] the end counts as reached this arc length before it (env.EnvConfig.end_tolerance)
+    end_tolerance: float = 0.0
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
@@ -104,7 +106,8 @@ class TrainConfig:
             from mjx_pathtrack.tasks import humanoid_balance
 
             weights = humanoid_balance.balance_weights(self.balance_reward, weights)
-        return EnvConfig(dt=self.dt, n_next=self.n_next, knots_frame=self.knots_frame, duration=self.duration,
+        return EnvConfig(dt=self.dt, n_next=self.n_next, knots_frame=self.knots_frame, end_tolerance=self.end_tolerance,
+                         duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
                          deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
                          reward=weights)

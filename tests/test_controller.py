@@ -270,6 +270,18 @@ def test_end_of_path_brakes_to_a_stop_and_holds():
     assert audit.step().status is Status.TRACKING
 
 
+def test_end_tolerance_brakes_to_a_stop_short_of_the_end():
+    """A policy that stalls short of the path end (here: it keeps the robot still) never reaches
+    it; with end_tolerance covering the rest of the path the tracker brakes and stops."""
+    knots = np.array([[0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    for tolerance, expected in ((0.0, Status.TRACKING), (0.05, Status.STOPPED)):
+        t = tracker(lambda obs: np.zeros(N), end_tolerance=tolerance)
+        t.set_path(knots)
+        outs = [t.step() for _ in range(3)]
+        assert outs[-1].status is expected and outs[-1].reached_end is (tolerance > 0)
+        assert outs[-1].progress < 1e-3
+
+
 def test_policy_faults_brake_instead_of_raising():
     """NaN, a wrong shape or a non-numeric action: this and later steps brake (no exception)."""
     for bad in (np.full(N, np.nan), np.zeros(N + 1), "left"):

@@ -163,6 +163,22 @@ def test_relative_knots_show_knot_minus_position_and_keep_the_rest():
         EnvConfig(knots_frame="polar")
 
 
+def test_end_tolerance_starts_braking_before_the_end():
+    """EnvConfig.end_tolerance: within that arc length of the path end the end counts as reached
+    (braking, metric reached_end); 0 keeps the papers' rule (only at the end)."""
+    paths = random_walk_paths(n_paths=2)
+    actions = jnp.ones(7) * 0.3
+    for tolerance, expected in ((0.0, False), (1e3, True)):
+        env = PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, EnvConfig(end_tolerance=tolerance))
+        state = env.step(env.reset(jax.random.PRNGKey(0)), actions)
+        assert bool(state.pipeline_state.braking) is expected
+        assert float(state.metrics["reached_end"]) == float(expected)
+        assert float(state.pipeline_state.s) < float(env.episode_path(state.pipeline_state).length)  # not at the end
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="end_tolerance"):
+            EnvConfig(end_tolerance=bad)
+
+
 def test_bad_construction_errors():
     paths = random_walk_paths(n_paths=2)
     with pytest.raises(ValueError, match="path joints"):

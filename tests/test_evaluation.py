@@ -159,7 +159,7 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
     result = subprocess.run([sys.executable, "evaluate.py", str(run), "--episodes", "3", "--timing-decisions", "5",
-                             "--terminate-deviation", "0.3", "--out", str(out)],
+                             "--terminate-deviation", "0.3", "--end-tolerance", "0.05", "--out", str(out)],
                             cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for heading in ("Table I", "Table VI", "Table IX", "Limit audit", "OK (<= 1)"):
@@ -167,6 +167,7 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["episodes"] == 3 and metrics["limit_audit"]["ok"] and metrics["paths"] == "iiwa/random/test"
     assert metrics["terminate_deviation"] == 0.3 and metrics["actions"] == "deterministic"
+    assert metrics["end_tolerance"] == 0.05
     assert metrics["computation_time"]["decisions"] == 5 and 0 < metrics["computation_time"]["max_over_dt"] < 10
     assert metrics["toppra_duration_s_mean"] > 0
     rows = (out / "episodes.csv").read_text().strip().splitlines()
@@ -234,6 +235,8 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     assert cli.main([str(tmp_path / "missing")]) == 2
     assert cli.main([str(run), "--paths", str(bad_paths)]) == 2
     assert cli.main([str(run), "--terminate-deviation", "-1"]) == 2
+    assert cli.main([str(run), "--end-tolerance", "nan"]) == 2
     err = capsys.readouterr().err
+    assert "--end-tolerance must be a finite number >= 0" in err
     assert "no run or export directory" in err and "6 joint values" in err
     assert "--terminate-deviation must be > 0" in err
