@@ -1,7 +1,7 @@
 """Paper 001 experiments on the velocity-maximisation task: Table II (trained vs optimal average
 velocity per decision frequency) and Table I (penalty baselines vs the safe action space).
 
-    python scripts/paper001_experiments.py --out runs/paper001            # all runs (~40 min on 2 idle CPU cores)
+    python scripts/paper001_experiments.py --out runs/paper001            # all runs (1,480 s on 2 CPU cores shared with other runs)
     python scripts/paper001_experiments.py --out runs/paper001 --tables-only   # rebuild tables from reports
 
 Runs PPO (:mod:`mjx_pathtrack.tasks.velocity_max_train`) for ``mode="safe"`` at 10, 20, 120 and
