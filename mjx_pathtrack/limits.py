@@ -513,6 +513,13 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, 
     return jnp.maximum(jnp.where(use, grid, exact), lo)
 
 
+def jerk_budget(J, A, dt):
+    """Per-step change of acceleration the safe range plans with [rad/s^2]: ``J dt`` pulled in
+    by the float32 resolution of accelerations of size ``A``, so that ``a1 - a0`` rounded never
+    exceeds ``J dt`` (matters when ``J dt << A``). Works on NumPy and JAX arrays."""
+    return (J * dt * (1.0 - MARGIN) - 8.0 * float(np.finfo(np.float32).eps) * A).clip(min=0.0)
+
+
 def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
     """Largest ``a1`` whose velocity peak equals ``V`` (settling rule, module docstring).
 
@@ -671,9 +678,7 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     # the stop to rest settles exactly (a settling acceleration would keep a small drift)
     settle_tail = jnp.where(narrow, 0.0, settle)
     reserve = 0.25 * p_tol
-    # per-step jerk budget, pulled in by the float32 resolution of accelerations of size A so
-    # that a1 - a0 rounded never exceeds J dt (matters when J dt << A)
-    delta = jnp.maximum(J * dt * (1.0 - MARGIN) - 8.0 * float(np.finfo(np.float32).eps) * A, 0.0)
+    delta = jerk_budget(J, A, dt)
     j_lo, j_hi = jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A)
     k_lo = jnp.maximum(j_lo, -_velocity_upper_bound(-v, -a, V, dt, A, delta, settle))
     k_hi = jnp.minimum(j_hi, _velocity_upper_bound(v, a, V, dt, A, delta, settle))

@@ -247,13 +247,14 @@ def _reference_velocity_peak(v0, a0, a1, dt, delta, settle):
     step 0 goes a0 -> a1, then the acceleration falls by ``delta`` per step, the step that would
     cross below ``-settle`` ends at ``-settle``, and the peak is where the acceleration crosses 0."""
     def segment(v, a_s, a_e):
+        """(peak, end velocity) of one step with acceleration linear from a_s to a_e."""
+        end = v + 0.5 * (a_s + a_e) * dt
         crossing = (a_s > 0) & (a_e < 0)
         t = np.where(crossing, a_s * dt / np.where(crossing, a_s - a_e, 1.0), 0.0)
         inside = np.where(crossing, v + 0.5 * a_s * t, -np.inf)
-        return np.maximum.reduce([np.full_like(v, v), v + 0.5 * (a_s + a_e) * dt, inside]), v + 0.5 * (a_s + a_e) * dt
+        return np.maximum.reduce([v, end, inside]), end
 
     peak, v = segment(v0, a0, a1)
-    peak = np.maximum(peak, v0)
     a = a1
     for _ in range(int(np.ceil(np.max(a1) / np.min(delta))) + 2):
         active = a > 0
@@ -276,7 +277,7 @@ def test_velocity_bound_is_safe_and_tight_on_branch_boundaries(dt, kind):
     lim = iiwa_limits(dt) if kind == "iiwa" else random_limits(dt, seed=10 + DTS.index(dt))
     A, J = np.asarray(lim.acc, np.float64), np.asarray(lim.jerk, np.float64)
     V = np.asarray(lim.vel, np.float64) * (1.0 - L.MARGIN)
-    delta = np.maximum(J * dt * (1.0 - L.MARGIN) - 8.0 * float(np.finfo(np.float32).eps) * A, 0.0)
+    delta = L.jerk_budget(J, A, dt)
     settle = L.SETTLE_FACTOR * A
     rng = np.random.default_rng(0)
     # grid: v0 in [-V, V], a0 in [-A, A]
