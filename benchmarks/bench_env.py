@@ -1,6 +1,8 @@
 """Env steps per second of the jitted, vmapped PathTrackingEnv step.
 
 Run: python benchmarks/bench_env.py [--batch 2048] [--repeats 20] [--executor kinematic|mjx]
+With several local devices (on CPU: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``) it
+also measures the batch sharded over them with ``jax.pmap``, as Brax PPO runs it.
 Prints steps/s of the full step and of its parts measured in the same run (safe range, the
 rest), so the ratio shows where the time goes. Uses the committed iiwa random test split.
 Floors (issue 5, batch 2048, CPU): kinematic 200,000 env steps/s; mjx (24 physics sub-steps
@@ -52,6 +54,12 @@ def main() -> None:
     print(f"{'env.step (' + args.executor + ')':<27}: {full:12,.0f} env-steps/s")
     print(f"  safe range alone         : {safe:12,.0f} env-steps/s  (~{100 * full / safe:3.0f} % of the step time)")
     print(f"  observation alone        : {observe:12,.0f} env-steps/s")
+    devices = jax.local_device_count()
+    if devices > 1 and args.batch % devices == 0:
+        # the batch sharded over all local devices, as Brax PPO does (jax.pmap)
+        split = jax.tree.map(lambda x: x.reshape((devices, -1) + x.shape[1:]), (state, actions))
+        sharded = rate(jax.pmap(jax.vmap(env.step)), split, args.batch, args.repeats)
+        print(f"env.step on {devices} devices (pmap):  {sharded:12,.0f} env-steps/s  ({sharded / full:.2f}x)")
 
 
 if __name__ == "__main__":

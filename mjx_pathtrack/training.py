@@ -172,7 +172,11 @@ def make_env(config: TrainConfig, split: str = "train", root=None) -> PathTracki
 
 class Progress:
     """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv`` and
-    writes the same scalars as TensorBoard events to ``run_dir/tensorboard``."""
+    writes the same scalars as TensorBoard events to ``run_dir/tensorboard``.
+
+    Each row has ``wall_s`` (seconds since this object was made), ``env_steps_per_s`` over the
+    interval since the previous row (the first interval includes compilation) and the metrics
+    passed in (Brax's ``training/*`` and this package's ``eval/*`` summaries)."""
 
     def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0, echo: bool = True):
         from tensorboardX import SummaryWriter
@@ -181,30 +185,31 @@ class Progress:
         self.board = SummaryWriter(str(run_dir / "tensorboard"))
         self.echo = echo
         self.total = total_steps
-        self.t0 = time.monotonic()
-        self.first_step: int | None = None
+        self.start = time.monotonic()
+        self.last: tuple[int, float] | None = None
         self.start_step = start_step
 
     def __call__(self, step: int, metrics: dict[str, Any]) -> None:
         step += self.start_step
         now = time.monotonic()
-        if self.first_step is None:  # the first call comes after compilation
-            self.first_step, self.t0 = step, now
-            rate = float("nan")
-        else:
-            rate = (step - self.first_step) / max(now - self.t0, 1e-9)
-        eta = (self.total - step) / rate if rate == rate and rate > 0 else float("nan")
-        row = {"step": step, "env_steps_per_s": rate, "eta_s": eta,
+        rate = float("nan")
+        if self.last is not None and step > self.last[0]:
+            rate = (step - self.last[0]) / max(now - self.last[1], 1e-9)
+        self.last = (step, now)
+        eta = max(self.total - step, 0) / rate if rate == rate and rate > 0 else float("nan")
+        row = {"step": step, "wall_s": now - self.start, "env_steps_per_s": rate, "eta_s": eta,
                **{k: float(np.asarray(v)) for k, v in metrics.items() if np.ndim(v) == 0}}
         append_csv_row(self.file, row)
         for key, value in row.items():
             if key != "step" and np.isfinite(value):
                 self.board.add_scalar(key, value, step)
         self.board.flush()
-        ret = row.get("eval/episode_reward", float("nan"))
         if self.echo:
-            print(f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}",
-                  flush=True)
+            ret = row.get("eval/return", row.get("eval/episode_reward", float("nan")))
+            line = f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}"
+            if "eval/end_reached" in row:
+                line += f"  end reached {100 * row['eval/end_reached']:5.1f} %  deviation {row['eval/mean_deviation']:.3f} rad"
+            print(line, flush=True)
 
 
 def ppo_networks(config: TrainConfig):
@@ -254,17 +259,30 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
     eval_key = jax.random.PRNGKey(config.seed + 1)
 
     evaluators = {}
+    progress = Progress(run_dir, config.num_timesteps, done_steps, echo=verbose)
+    latest: dict[str, float] = {}
 
     def evaluation(make_inference_fn, params) -> dict[str, float]:
         if "fn" not in evaluators:
             evaluators["fn"] = make_evaluator(test_env, make_inference_fn, config.eval_episodes)
-        return summarize(evaluators["fn"](params, eval_key))
+        # host copies: parameters fresh from Brax's pmap and from its initialisation differ in
+        # placement, which would compile the evaluator twice (~20 s each on CPU)
+        return summarize(evaluators["fn"](jax.tree.map(np.asarray, params), eval_key))
 
     def policy_params_fn(step, make_inference_fn, params):
+        # Brax calls this at the start and after every training iteration, before progress_fn:
+        # the evaluation of this package (full test episodes, deterministic policy) replaces
+        # Brax's evaluator, which would run (and compile) a second rollout per evaluation
+        latest.clear()
+        latest.update(evaluation(make_inference_fn, params))
         if "before" not in report:
-            report["before"] = evaluation(make_inference_fn, params)
+            report["before"] = dict(latest)
             if verbose:
                 print("evaluation before training:", _fmt(report["before"]), flush=True)
+            progress(step, {f"eval/{k}": v for k, v in latest.items()})
+
+    def progress_fn(step, metrics):
+        progress(step, {**metrics, **{f"eval/{k}": v for k, v in latest.items()}})
 
     make_inference_fn, params, _ = ppo.train(
         environment=env, eval_env=test_env, wrap_env_fn=wrap_for_training,
@@ -273,13 +291,13 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
         gae_lambda=config.gae_lambda, clipping_epsilon=config.clipping_epsilon,
         unroll_length=config.unroll_length, batch_size=config.batch_size, num_minibatches=config.num_minibatches,
         num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals,
-        num_eval_envs=min(config.eval_episodes, 128), deterministic_eval=True, normalize_observations=True,
+        run_evals=False, num_eval_envs=1,  # Brax still builds (and resets) its unused evaluator
+        normalize_observations=True,
         network_factory=ppo_networks(config), seed=config.seed,
-        progress_fn=Progress(run_dir, config.num_timesteps, done_steps, echo=verbose),
-        policy_params_fn=policy_params_fn,
+        progress_fn=progress_fn, policy_params_fn=policy_params_fn,
         save_checkpoint_path=str((checkpoints / f"{done_steps:012d}").resolve()),
         restore_checkpoint_path=str(restore) if restore else None)
-    report["after"] = evaluation(make_inference_fn, params)
+    report["after"] = dict(latest) if latest else evaluation(make_inference_fn, params)
     if verbose:
         print("evaluation after training: ", _fmt(report["after"]), flush=True)
     atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))

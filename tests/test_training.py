@@ -1,5 +1,6 @@
 """train.py / training.py on tiny runs: outputs, determinism, resume, two host devices."""
 
+import csv
 import json
 import os
 import pickle
@@ -46,8 +47,14 @@ def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
         assert set(summary) >= {"return", "end_reached", "mean_deviation", "stop_time_s"}
         assert np.isfinite(summary["return"])
     assert json.loads((out / "report.json").read_text()) == json_safe(report)
-    rows = (out / "progress.csv").read_text().splitlines()
-    assert rows[0].startswith("step,env_steps_per_s,eta_s") and len(rows) >= 3  # header + one row per evaluation
+    rows = list(csv.DictReader(open(out / "progress.csv")))
+    assert list(rows[0])[:4] == ["step", "wall_s", "env_steps_per_s", "eta_s"] and len(rows) >= 2  # one per evaluation
+    assert float(rows[0]["step"]) == 0 and float(rows[-1]["step"]) >= config.num_timesteps
+    # the rows show this package's evaluation: the first is the report's "before", the last its "after"
+    for row, summary in ((rows[0], report["before"]), (rows[-1], report["after"])):
+        assert float(row["eval/end_reached"]) == pytest.approx(summary["end_reached"])
+        assert float(row["eval/return"]) == pytest.approx(summary["return"])
+    assert "training/sps" in rows[-1] and float(rows[-1]["env_steps_per_s"]) > 0
     assert any(p.name.startswith("events.out.tfevents") for p in (out / "tensorboard").iterdir())
     latest = latest_checkpoint(out / "checkpoints")
     assert latest is not None and latest[1] > 0
