@@ -297,7 +297,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
         progress_fn=progress_fn, policy_params_fn=policy_params_fn,
         save_checkpoint_path=str((checkpoints / f"{done_steps:012d}").resolve()),
         restore_checkpoint_path=str(restore) if restore else None)
-    report["after"] = dict(latest) if latest else evaluation(make_inference_fn, params)
+    report["after"] = dict(latest)  # Brax evaluated the final parameters last (policy_params_fn)
     if verbose:
         print("evaluation after training: ", _fmt(report["after"]), flush=True)
     atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
