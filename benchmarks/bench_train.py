@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import tempfile
 from pathlib import Path
 
@@ -22,7 +23,8 @@ import mjx_pathtrack  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from mjx_pathtrack.training import TrainConfig, make_env, train
+from bench_env import rate  # same directory: the timing loop of the env benchmark
+from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks, train
 
 
 def main() -> None:
@@ -43,18 +45,9 @@ def main() -> None:
     brax_sps = float(last["training/sps"])
 
     env = make_env(config, "train")
-    step = jax.jit(jax.vmap(env.step))
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), args.num_envs))
-    actions = jnp.zeros((args.num_envs, env.action_size))
-    state = step(state, actions)
-    jax.block_until_ready(state)
-    import time
-
-    t0 = time.perf_counter()
-    for _ in range(10):
-        state = step(state, actions)
-    jax.block_until_ready(state)
-    env_only = 10 * args.num_envs / (time.perf_counter() - t0)
+    env_only = rate(jax.jit(jax.vmap(env.step)), (state, jnp.zeros((args.num_envs, env.action_size))),
+                    args.num_envs, 10)
     sgd = sgd_rate(config, env)
     print(f"device: {jax.devices()[0].platform} x {jax.local_device_count()}  num_envs {args.num_envs}  "
           f"layers {tuple(args.layers)}")
@@ -67,15 +60,10 @@ def main() -> None:
 def sgd_rate(config, env) -> float:
     """Env steps/s that the PPO updates alone allow: one iteration's ``num_updates_per_batch x
     num_minibatches`` minibatch steps of Brax's PPO loss and Adam on zero data, jitted."""
-    import functools
-    import time
-
     import optax
     from brax.training import types
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import losses
-
-    from mjx_pathtrack.training import ppo_networks
 
     net = ppo_networks(config)(env.observation_size, env.action_size)
     key = jax.random.PRNGKey(0)
@@ -104,13 +92,8 @@ def sgd_rate(config, env) -> float:
 
         return jax.lax.scan(body, (params, opt_state), jax.random.split(key, updates))[0]
 
-    state = iteration(params, optimizer.init(params), key)
-    jax.block_until_ready(state)
-    t0 = time.perf_counter()
-    for _ in range(3):
-        state = iteration(*state, key)
-    jax.block_until_ready(state)
-    return 3 * config.batch_size * config.num_minibatches * config.unroll_length / (time.perf_counter() - t0)
+    env_steps = config.batch_size * config.num_minibatches * config.unroll_length  # per PPO iteration
+    return rate(iteration, (params, optimizer.init(params), key), env_steps, 3)
 
 
 if __name__ == "__main__":
