@@ -6,7 +6,7 @@ Trains the default iiwa config in a temporary directory and prints, measured in 
   the periodic evaluations and checkpoints between them included),
 * Brax's ``training/sps`` of the last iteration (rollouts + PPO updates only),
 * the env-step rate of the same environment without learning (``jax.jit(jax.vmap(env.step))``),
-* the rate of the SGD alone: one iteration's PPO minibatch updates on synthetic data.
+* the rate of the SGD alone: one iteration's shuffled PPO minibatch updates on synthetic data.
 All local JAX devices are used (on CPU: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``).
 """
 
@@ -58,8 +58,10 @@ def main() -> None:
 
 
 def sgd_rate(config, env) -> float:
-    """Env steps/s that the PPO updates alone allow: one iteration's ``num_updates_per_batch x
-    num_minibatches`` minibatch steps of Brax's PPO loss and Adam on zero data, jitted."""
+    """Env steps/s that the PPO updates alone allow: one iteration of Brax's SGD as
+    ``ppo.train`` runs it (``num_updates_per_batch`` passes, each shuffling the iteration's
+    ``batch_size * num_minibatches`` unrolls and scanning over ``num_minibatches`` minibatch
+    steps of Brax's PPO loss and Adam) on zero data, jitted."""
     import optax
     from brax.training import types
     from brax.training.acme import running_statistics
@@ -70,7 +72,8 @@ def sgd_rate(config, env) -> float:
     params = losses.PPONetworkParams(policy=net.policy_network.init(key), value=net.value_network.init(key))
     norm = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float32))
     optimizer = optax.adam(config.learning_rate)
-    b, t, o, a = config.batch_size, config.unroll_length, env.observation_size, env.action_size
+    b = config.batch_size * config.num_minibatches
+    t, o, a = config.unroll_length, env.observation_size, env.action_size
     zeros = jnp.zeros
     data = types.Transition(observation=zeros((b, t, o)), action=zeros((b, t, a)), reward=zeros((b, t)),
                             discount=jnp.ones((b, t)), next_observation=zeros((b, t, o)),
@@ -80,19 +83,27 @@ def sgd_rate(config, env) -> float:
     loss = functools.partial(losses.compute_ppo_loss, ppo_network=net, entropy_cost=config.entropy_cost,
                              discounting=config.discounting, reward_scaling=1.0, gae_lambda=config.gae_lambda,
                              clipping_epsilon=config.clipping_epsilon, normalize_advantage=True)
-    updates = config.num_updates_per_batch * config.num_minibatches
+
+    def minibatch(carry, batch):
+        p, s, k = carry
+        k, k_loss = jax.random.split(k)
+        grads, _ = jax.grad(loss, has_aux=True)(p, norm, batch, k_loss)
+        u, s = optimizer.update(grads, s, p)
+        return (optax.apply_updates(p, u), s, k), None
+
+    def epoch(carry, _):
+        p, s, k = carry
+        k, k_perm, k_grad = jax.random.split(k, 3)
+        shuffled = jax.tree.map(lambda x: jax.random.permutation(k_perm, x).reshape(
+            (config.num_minibatches, -1) + x.shape[1:]), data)
+        (p, s, _), _ = jax.lax.scan(minibatch, (p, s, k_grad), shuffled)
+        return (p, s, k), None
 
     @jax.jit
     def iteration(params, opt_state, key):
-        def body(carry, k):
-            p, s = carry
-            grads, _ = jax.grad(loss, has_aux=True)(p, norm, data, k)
-            u, s = optimizer.update(grads, s, p)
-            return (optax.apply_updates(p, u), s), None
+        return jax.lax.scan(epoch, (params, opt_state, key), None, length=config.num_updates_per_batch)[0]
 
-        return jax.lax.scan(body, (params, opt_state), jax.random.split(key, updates))[0]
-
-    env_steps = config.batch_size * config.num_minibatches * config.unroll_length  # per PPO iteration
+    env_steps = b * config.unroll_length  # per PPO iteration
     return rate(iteration, (params, optimizer.init(params), key), env_steps, 3)
 
 
