@@ -1,7 +1,9 @@
 """End-to-end Brax PPO training throughput (env steps/s including the updates).
 
-Run: python benchmarks/bench_train.py [--num-envs 2048] [--num-timesteps 2000000] [--layers 128 64]
-Trains the default iiwa config in a temporary directory and prints, measured in the same run:
+Run: python benchmarks/bench_train.py [--num-envs 256] [--num-timesteps 2000000] [--layers 128 64]
+Trains the default iiwa config (that of ``python train.py``: 256 environments, PPO batch 256 x 8
+minibatches; ``--num-envs`` changes only the number of environments) in a temporary directory
+and prints, measured in the same run:
 * wall-clock env-steps/s from the second to the last progress row (compilation excluded;
   the periodic evaluations and checkpoints between them included),
 * Brax's ``training/sps`` of the last iteration (rollouts + PPO updates only),
@@ -29,13 +31,13 @@ from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks, train
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--num-envs", type=int, default=2048)
+    parser.add_argument("--num-envs", type=int, default=TrainConfig().num_envs)
     parser.add_argument("--num-timesteps", type=int, default=2_000_000)
     parser.add_argument("--layers", type=int, nargs="+", default=list(TrainConfig().policy_layers),
                         help="hidden layers of both the policy and the value network")
     args = parser.parse_args()
     config = dataclasses.replace(TrainConfig(), num_envs=args.num_envs, num_timesteps=args.num_timesteps,
-                                 batch_size=args.num_envs // 8, num_evals=3, eval_episodes=16,
+                                 num_evals=3, eval_episodes=16,
                                  policy_layers=tuple(args.layers), value_layers=tuple(args.layers))
     with tempfile.TemporaryDirectory() as out:
         train(config, out, verbose=False)
@@ -47,7 +49,7 @@ def main() -> None:
     env = make_env(config, "train")
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), args.num_envs))
     env_only = rate(jax.jit(jax.vmap(env.step)), (state, jnp.zeros((args.num_envs, env.action_size))),
-                    args.num_envs, 10)
+                    args.num_envs, max(10, 40960 // args.num_envs))
     sgd = sgd_rate(config, env)
     print(f"device: {jax.devices()[0].platform} x {jax.local_device_count()}  num_envs {args.num_envs}  "
           f"layers {tuple(args.layers)}")
