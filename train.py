@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 
 import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
@@ -48,6 +49,10 @@ def parse_args(argv=None):
                         help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweep.py); the training "
                              "flags below are then ignored: put them in the file's 'base'")
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
+    parser.add_argument("--compilation-cache", default=None, metavar="DIR",
+                        help="JAX's persistent compilation cache (default: $JAX_COMPILATION_CACHE_DIR if set, else "
+                             "$XDG_CACHE_HOME or ~/.cache, /mjx_pathtrack/jax; 'off': none). A repeated run skips "
+                             "most compilation, and Brax's training epoch, compiled twice in every run, is compiled once")
     parser.add_argument("--distributed", action="store_true",
                         help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
                              "or the three flags below)")
@@ -81,8 +86,41 @@ def parse_args(argv=None):
     return args, TrainConfig(**values)
 
 
-def main(argv=None) -> int:
+def compilation_cache_dir(flag: str | None, environ=os.environ) -> str | None:
+    """Directory for JAX's persistent compilation cache that ``train.py`` sets, or None to set none:
+    ``flag`` (``--compilation-cache``; ``"off"``/empty: none), else none if the user set
+    ``JAX_COMPILATION_CACHE_DIR`` (JAX reads it itself), else ``$XDG_CACHE_HOME`` (or ``~/.cache``)
+    ``/mjx_pathtrack/jax``."""
+    if flag is not None:
+        return None if flag.strip().lower() in ("", "off") else flag
+    if environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return None
+    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "mjx_pathtrack", "jax")
+
+
+def use_compilation_cache(flag: str | None) -> None:
+    """Point JAX's persistent compilation cache at :func:`compilation_cache_dir` (a warning, no
+    cache, if that directory cannot be created)."""
+    import jax
+
+    directory = compilation_cache_dir(flag)
+    if directory is None:
+        return
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError as e:
+        print(f"warning: no compilation cache ({directory}: {e})", file=sys.stderr, flush=True)
+        return
+    jax.config.update("jax_compilation_cache_dir", directory)
+
+
+def main(argv=None, set_cache: bool = False) -> int:
+    """The command line; ``set_cache``: configure JAX's persistent compilation cache (a global
+    JAX setting, so only the ``train.py`` process itself does it, not callers of ``main``)."""
     args, config = parse_args(argv)
+    if set_cache:
+        use_compilation_cache(args.compilation_cache)
     if args.sweep:
         from mjx_pathtrack import sweep
 
@@ -99,4 +137,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(set_cache=True))

@@ -6,7 +6,8 @@ minibatches; ``--num-envs`` changes only the number of environments) in a tempor
 and prints, measured in the same run:
 * wall-clock env-steps/s from the second to the last progress row (compilation excluded;
   the periodic evaluations and checkpoints between them included),
-* Brax's ``training/sps`` of the last iteration (rollouts + PPO updates only),
+* Brax's ``training/sps`` of the last iteration (rollouts + PPO updates only), and of every
+  interval (``--num-evals``: training runs slower in its first few million steps),
 * the env-step rate of the same environment without learning (``jax.jit(jax.vmap(env.step))``),
 * the rate of the SGD alone: one iteration's shuffled PPO minibatch updates on synthetic data.
 All local JAX devices are used (on CPU: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``).
@@ -33,11 +34,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--num-envs", type=int, default=TrainConfig().num_envs)
     parser.add_argument("--num-timesteps", type=int, default=2_000_000)
+    parser.add_argument("--num-evals", type=int, default=3, help="progress rows (the first is before training)")
     parser.add_argument("--layers", type=int, nargs="+", default=list(TrainConfig().policy_layers),
                         help="hidden layers of both the policy and the value network")
     args = parser.parse_args()
     config = dataclasses.replace(TrainConfig(), num_envs=args.num_envs, num_timesteps=args.num_timesteps,
-                                 num_evals=3, eval_episodes=16,
+                                 num_evals=args.num_evals, eval_episodes=16,
                                  policy_layers=tuple(args.layers), value_layers=tuple(args.layers))
     with tempfile.TemporaryDirectory() as out:
         train(config, out, verbose=False)
@@ -57,6 +59,7 @@ def main() -> None:
     print(f"PPO training, Brax training/sps            : {brax_sps:12,.0f} env-steps/s  (rollouts + updates)")
     print(f"env.step alone (one device)                : {env_only:12,.0f} env-steps/s  (training = {training / env_only:.2f} of it)")
     print(f"PPO updates alone (one device)             : {sgd:12,.0f} env-steps/s")
+    print("Brax training/sps per interval             : " + ", ".join(f"{float(r['training/sps']):,.0f}" for r in rows[1:]))
 
 
 def sgd_rate(config, env) -> float:

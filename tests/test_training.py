@@ -89,12 +89,23 @@ def test_resume_continues_from_the_last_checkpoint(tiny_run, tmp_path):
 
 def test_train_cli_on_two_forced_host_devices(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    result = subprocess.run([sys.executable, "train.py", *tiny_args(tmp_path / "run")], cwd=REPO, env=env,
-                            capture_output=True, text=True, timeout=900)
+    cache = tmp_path / "jax_cache"
+    result = subprocess.run([sys.executable, "train.py", *tiny_args(tmp_path / "run"), "--compilation-cache", str(cache)],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "CpuDevice(id=1)" in result.stdout  # both devices visible to Brax's pmap
     assert "evaluation after training" in result.stdout
     assert (tmp_path / "run" / "params.pkl").is_file()
+    assert any(cache.iterdir())  # compiled programs went to the persistent cache
+
+
+def test_compilation_cache_dir_respects_the_flag_and_the_user_setting(tmp_path):
+    import train as cli
+
+    assert cli.compilation_cache_dir("off", {}) is None
+    assert cli.compilation_cache_dir(str(tmp_path), {"JAX_COMPILATION_CACHE_DIR": "/x"}) == str(tmp_path)
+    assert cli.compilation_cache_dir(None, {"JAX_COMPILATION_CACHE_DIR": "/x"}) is None  # JAX reads it itself
+    assert cli.compilation_cache_dir(None, {"XDG_CACHE_HOME": str(tmp_path)}) == str(tmp_path / "mjx_pathtrack" / "jax")
 
 
 def test_presets_set_the_papers_settings_as_flag_defaults():
