@@ -50,9 +50,10 @@ def parse_args(argv=None):
                              "flags below are then ignored: put them in the file's 'base'")
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
     parser.add_argument("--compilation-cache", default=None, metavar="DIR",
-                        help="JAX's persistent compilation cache (default: $JAX_COMPILATION_CACHE_DIR if set, else "
-                             "$XDG_CACHE_HOME or ~/.cache, /mjx_pathtrack/jax; 'off': none). A repeated run skips "
-                             "most compilation, and Brax's training epoch, compiled twice in every run, is compiled once")
+                        help="keep JAX's persistent compilation cache in DIR (default: none, unless "
+                             "JAX_COMPILATION_CACHE_DIR is set): a repeated run skips most compilation, and Brax's "
+                             "training epoch, compiled twice in every run, loads the second time (README: the "
+                             "loaded program measured slower once, so it is not on by default)")
     parser.add_argument("--distributed", action="store_true",
                         help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
                              "or the three flags below)")
@@ -86,17 +87,13 @@ def parse_args(argv=None):
     return args, TrainConfig(**values)
 
 
-def compilation_cache_dir(flag: str | None, environ=os.environ) -> str | None:
-    """Directory for JAX's persistent compilation cache that ``train.py`` sets, or None to set none:
-    ``flag`` (``--compilation-cache``; ``"off"``/empty: none), else none if the user set
-    ``JAX_COMPILATION_CACHE_DIR`` (JAX reads it itself), else ``$XDG_CACHE_HOME`` (or ``~/.cache``)
-    ``/mjx_pathtrack/jax``."""
-    if flag is not None:
-        return None if flag.strip().lower() in ("", "off") else flag
-    if environ.get("JAX_COMPILATION_CACHE_DIR"):
+def compilation_cache_dir(flag: str | None) -> str | None:
+    """Directory for JAX's persistent compilation cache that ``train.py`` sets (``--compilation-cache``),
+    or None to set none (no flag, or ``"off"``/empty; a set ``JAX_COMPILATION_CACHE_DIR`` is read
+    by JAX itself)."""
+    if flag is None or flag.strip().lower() in ("", "off"):
         return None
-    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "mjx_pathtrack", "jax")
+    return flag
 
 
 def use_compilation_cache(flag: str | None) -> None:
@@ -115,12 +112,9 @@ def use_compilation_cache(flag: str | None) -> None:
     jax.config.update("jax_compilation_cache_dir", directory)
 
 
-def main(argv=None, set_cache: bool = False) -> int:
-    """The command line; ``set_cache``: configure JAX's persistent compilation cache (a global
-    JAX setting, so only the ``train.py`` process itself does it, not callers of ``main``)."""
+def main(argv=None) -> int:
     args, config = parse_args(argv)
-    if set_cache:
-        use_compilation_cache(args.compilation_cache)
+    use_compilation_cache(args.compilation_cache)
     if args.sweep:
         from mjx_pathtrack import sweep
 
@@ -137,4 +131,4 @@ def main(argv=None, set_cache: bool = False) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(set_cache=True))
+    sys.exit(main())
