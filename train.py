@@ -52,8 +52,7 @@ def parse_args(argv=None):
     parser.add_argument("--compilation-cache", default=None, metavar="DIR",
                         help="keep JAX's persistent compilation cache in DIR (default: none, unless "
                              "JAX_COMPILATION_CACHE_DIR is set): a repeated run skips most compilation, and Brax's "
-                             "training epoch, compiled twice in every run, loads the second time (README: the "
-                             "loaded program measured slower once, so it is not on by default)")
+                             "training epoch, compiled twice in every run, loads the second time)")
     parser.add_argument("--distributed", action="store_true",
                         help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
                              "or the three flags below)")
