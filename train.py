@@ -52,7 +52,7 @@ def parse_args(argv=None):
     parser.add_argument("--compilation-cache", default=None, metavar="DIR",
                         help="keep JAX's persistent compilation cache in DIR (default: none, unless "
                              "JAX_COMPILATION_CACHE_DIR is set): a repeated run skips most compilation, and Brax's "
-                             "training epoch, compiled twice in every run, loads the second time)")
+                             "training epoch, compiled twice in every run, loads the second time")
     parser.add_argument("--distributed", action="store_true",
                         help="multi-host: call jax.distributed.initialize() first (cluster auto-detection "
                              "or the three flags below)")
@@ -86,28 +86,18 @@ def parse_args(argv=None):
     return args, TrainConfig(**values)
 
 
-def compilation_cache_dir(flag: str | None) -> str | None:
-    """Directory for JAX's persistent compilation cache that ``train.py`` sets (``--compilation-cache``),
-    or None to set none (no flag, or ``"off"``/empty; a set ``JAX_COMPILATION_CACHE_DIR`` is read
-    by JAX itself)."""
-    if flag is None or flag.strip().lower() in ("", "off"):
-        return None
-    return flag
-
-
-def use_compilation_cache(flag: str | None) -> None:
-    """Point JAX's persistent compilation cache at :func:`compilation_cache_dir` (a warning, no
-    cache, if that directory cannot be created)."""
-    import jax
-
-    directory = compilation_cache_dir(flag)
+def use_compilation_cache(directory: str | None) -> None:
+    """Point JAX's persistent compilation cache at ``directory`` (``--compilation-cache``; None:
+    leave JAX's setting, e.g. a set ``JAX_COMPILATION_CACHE_DIR``). Exits with a clear message if
+    the directory cannot be created."""
     if directory is None:
         return
     try:
         os.makedirs(directory, exist_ok=True)
     except OSError as e:
-        print(f"warning: no compilation cache ({directory}: {e})", file=sys.stderr, flush=True)
-        return
+        raise SystemExit(f"--compilation-cache {directory}: cannot create the directory ({e})") from e
+    import jax
+
     jax.config.update("jax_compilation_cache_dir", directory)
 
 

@@ -99,12 +99,15 @@ def test_train_cli_on_two_forced_host_devices(tmp_path):
     assert any(cache.iterdir())  # compiled programs went to the persistent cache
 
 
-def test_compilation_cache_is_opt_in():
+def test_compilation_cache_is_opt_in_and_a_bad_directory_is_a_clear_error(tmp_path):
     import train as cli
 
-    assert cli.compilation_cache_dir(None) is None
-    assert cli.compilation_cache_dir("off") is None
-    assert cli.compilation_cache_dir("/some/dir") == "/some/dir"
+    args, _ = cli.parse_args([])
+    assert args.compilation_cache is None
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(SystemExit, match="--compilation-cache .*cannot create"):
+        cli.use_compilation_cache(str(blocker / "cache"))
 
 
 def test_presets_set_the_papers_settings_as_flag_defaults():
