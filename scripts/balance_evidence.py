@@ -2,7 +2,7 @@
 
     python scripts/balance_evidence.py [--root /tmp/balance_splines] [--out runs/balance_evidence]
         [--legs controlled] [--num-timesteps 30000] [--num-envs 64] [--batch-size B]
-        [--scales 1.0 0.0] [--uncensored]
+        [--scales 1.0 0.0] [--uncensored] [train.py options ...]
 
 1. generates a small ARMAR-4 upper-body random dataset under ``--root`` if it is missing
    (random safe motions as ``datasets generate``, resampled by curvature, but WITHOUT the
@@ -15,6 +15,9 @@
 4. with ``--uncensored``, also evaluates each trained policy with ``evaluate.py
    --terminate-deviation inf``: episodes then run on past the 0.25 rad deviation limit, which
    otherwise ends weak policies' episodes before they could fall, and prints that fall rate.
+
+Options this script does not know go to ``train.py`` unchanged, after its own, so they can
+override them (e.g. ``--num-evals 9 --compilation-cache /tmp/jax_cache``).
 
 A run whose ``report.json`` exists is not trained again (``--scales 1.0`` and ``--scales 0.0``
 can run as separate calls, e.g. on a lent GPU with a per-call time limit).
@@ -67,7 +70,7 @@ def main() -> int:
     parser.add_argument("--scales", nargs="+", default=["1.0", "0.0"], help="balance-reward scales to train")
     parser.add_argument("--uncensored", action="store_true",
                         help="also evaluate with evaluate.py --terminate-deviation inf")
-    args = parser.parse_args()
+    args, train_args = parser.parse_known_args()
     root = Path(args.root)
     if not (root / "armar4" / "random" / "config.json").is_file():
         make_dataset(root, args.n_train, args.n_test)
@@ -79,7 +82,7 @@ def main() -> int:
                    "--balance-reward", scale, "--dataset-root", str(root), "--num-envs", str(args.num_envs),
                    "--batch-size", str(args.batch_size or args.num_envs), "--num-minibatches", "4",
                    "--unroll-length", "10", "--num-timesteps", str(args.num_timesteps), "--num-evals", "2",
-                   "--eval-episodes", str(args.eval_episodes), "--out", str(out)]
+                   "--eval-episodes", str(args.eval_episodes), "--out", str(out), *train_args]
             print(" ".join(cmd), flush=True)
             subprocess.run(cmd, check=True)
         report = json.loads((out / "report.json").read_text())
