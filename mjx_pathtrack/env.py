@@ -252,7 +252,8 @@ class PathTrackingEnv(Env):
         a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
         a_policy = L.action_to_acceleration(action, a_min, a_max)
         a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
-        a_next = jnp.where(track.braking, a_brake, a_policy)
+        # (materialised: the executor's set-points and the integration would each recompute it)
+        a_next = L.materialized(jnp.where(track.braking, a_brake, a_policy))
         # executed positions at the sub-steps of the step, start point included: [S+1, n]
         exec_state, q, sensors = self.executor.execute(track.executor, track.p, track.v, track.a, a_next, cfg.dt)
         p1, v1, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, cfg.dt)

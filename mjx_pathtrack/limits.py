@@ -305,7 +305,8 @@ def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail
         floor = -_velocity_upper_bound(-v, -a, V_floor, dt, A, delta, settle)
         # (the search range is velocity-feasible, so the floor exceeds the jerk range only by
         # the V_tail reserve; the clip keeps the jerk limit)
-        a_next = jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, jnp.minimum(a + delta, A))
+        # (materialised: it has several consumers, each of which would re-evaluate the floor)
+        a_next = materialized(jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, jnp.minimum(a + delta, A)))
         best = jnp.maximum(best, _segment_max_position(p, v, a, (a_next - a) / dt, dt))
         p, v, _ = integrate(p, v, a, a_next, dt, dt)
         a = a_next
@@ -491,11 +492,12 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, 
         best, best_k = lo, jnp.ones_like(lo)
         for i in range(2):
             g, k = excess(x)
+            g = materialized(g)  # four consumers below, each would re-evaluate the braking peak
             fine = g <= 0
             best, best_k = jnp.where(fine & (x >= best), x, best), jnp.where(fine & (x >= best), k, best_k)
             # rare: the candidate failed by rounding; step down by a grid value or a Newton step
             x = jnp.where(fine, x, snap(x - jnp.maximum(q, 2.0 * (g + 4.0 * ulp) / jnp.maximum(slope, 1e-30))))
-    exact = best
+    exact = materialized(best)  # feeds the grid-stop candidates and the final choice
     # Prefer the grid-stop profile (reach P at rest-velocity on a decision step) when it is
     # feasible and not wider than the exact bound: it avoids overshoot-and-return motions.
     n_full = jnp.maximum(jnp.ceil((exact + A) / delta) - 1.0, 0.0)
@@ -682,6 +684,7 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     j_lo, j_hi = jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A)
     k_lo = jnp.maximum(j_lo, -_velocity_upper_bound(-v, -a, V, dt, A, delta, settle))
     k_hi = jnp.minimum(j_hi, _velocity_upper_bound(v, a, V, dt, A, delta, settle))
+    k_lo, k_hi = materialized(k_lo), materialized(k_hi)  # each has many consumers
     # Position bounds are searched inside the velocity-feasible range: an a1 that breaks a
     # velocity limit by itself is excluded there already and must not hide a position-safe one.
     feasible = k_lo <= k_hi
@@ -735,18 +738,21 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     hold = jnp.clip(jnp.where(jnp.isfinite(a), a, 0.0), -A, A)
     a_min = jnp.where(bad_input, hold, jnp.clip(a_min, -A, A))
     a_max = jnp.where(bad_input, hold, jnp.clip(a_max, -A, A))
-    a_min, a_max = _materialized(a_min), _materialized(a_max)
+    a_min, a_max = materialized(a_min), materialized(a_max)
     return SafeRange(a_min, a_max, outside | empty | bad_input)
 
 
-def _materialized(x: Array) -> Array:
+def materialized(x: Array) -> Array:
     """``x`` unchanged (exactly: ``max(x, -inf)``, NaN stays NaN), computed once into a buffer.
 
-    XLA on CPU fuses cheap elementwise producers into *each* consumer, so every use of the safe
-    range (action mapping, braking, clipping) re-evaluated its whole expression tree: mapping an
-    action cost twice the range itself. A reduction is a fusion root that consumers read from
-    memory (``lax.optimization_barrier`` is removed on CPU and does not help). Measured by
-    ``benchmarks/bench_env.py``: env.step 62,500 -> 99,600 env-steps/s at batch 2048, 2 cores."""
+    XLA on CPU fuses cheap elementwise producers into *each* consumer, so every use of a value
+    with a deep expression tree re-evaluates the whole tree: every use of the safe range (action
+    mapping, braking, clipping) recomputed it, and inside the range every consumer of a tail
+    step's acceleration recomputed its velocity floor. A reduction is a fusion root that
+    consumers read from memory (``lax.optimization_barrier`` is removed on CPU and does not
+    help). Use it on a value with several consumers whose tree is expensive. Measured by
+    ``benchmarks/bench_env.py`` (batch 2048, 2 cores): on the range's outputs, env.step 62,500 ->
+    99,600 env-steps/s; inside the range (tail, checks, velocity bounds) 91,500 -> 134,000."""
     return jnp.max(jnp.stack([x, jnp.full_like(x, -jnp.inf)], axis=-1), axis=-1)
 
 
@@ -763,8 +769,8 @@ def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt,
     zero = jnp.zeros_like(v)
     # v > 0: the lowest a1 that does not push the velocity below 0 (hardest braking without
     # undershoot); v < 0: the mirror image
-    hardest_down = -_velocity_upper_bound(-v, -a, zero, dt, A, delta, 0.0)
-    hardest_up = _velocity_upper_bound(v, a, zero, dt, A, delta, 0.0)
+    hardest_down = materialized(-_velocity_upper_bound(-v, -a, zero, dt, A, delta, 0.0))
+    hardest_up = materialized(_velocity_upper_bound(v, a, zero, dt, A, delta, 0.0))
     target = jnp.where(v > 0, hardest_down, jnp.where(v < 0, hardest_up, jnp.clip(zero, hardest_down, hardest_up)))
     target = jnp.clip(target, jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A))
     a_min, a_max = safe_acceleration_range(limits, p, v, a, dt) if safe_range is None else safe_range
