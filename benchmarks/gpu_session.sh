@@ -21,11 +21,14 @@ run() { local name=$1 limit=$2; shift 2; echo "=== $name ($(date +%T), limit ${l
 # "both" trains the two settings side by side on the one GPU (each its own process and 45 % of its
 # memory) and stops them after TB seconds: each evaluation writes a checkpoint and a progress row, so
 # a stopped pair still compares at the last step both reached. The ARMAR-4 URDF travels as
-# .whl/armar4_slim.tgz (the armar package with only the armar4 meshes) and the dataset as
+# .whl/armar4_slim.tgz (the armar package with only the files armar4_fixed_hands.urdf names) and the dataset as
 # .whl/balance_splines (scripts/balance_evidence.py writes it); the run directories come back as
 # $OUT/balance_runs.tgz.
 if [ -n "${BALANCE:-}" ]; then
-  [ -f .whl/armar4_slim.tgz ] && ! python3 -c "import armar" 2>/dev/null && { tar xzf .whl/armar4_slim.tgz -C /tmp/site || exit 1; }
+  if [ -f .whl/armar4_slim.tgz ] && ! python3 -c "import armar" 2>/dev/null; then
+    mkdir -p /tmp/site && tar xzf .whl/armar4_slim.tgz -C /tmp/site || exit 1
+    export PYTHONPATH=/tmp/site:${PYTHONPATH:-}
+  fi
   BROOT=${BROOT:-/tmp/balance_splines}; BOUT=${BOUT:-/tmp/balance_runs}
   [ -d .whl/balance_splines ] && [ ! -d "$BROOT" ] && cp -r .whl/balance_splines "$BROOT"
   if [ "${SMALL:-0}" = 1 ]; then NB=16; BB=8; TSB=1600; NE=3; else NB=${NB:-2048}; BB=${BB:-512}; TSB=${TSB:-12000000}; NE=${NE:-9}; fi

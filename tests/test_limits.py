@@ -75,7 +75,7 @@ def test_action_mapping_is_eq5_and_clips():
     np.testing.assert_allclose(L.action_to_acceleration(jnp.array([7.0, -9.0]), a_min, a_max), [4.0, 1.0])
 
 
-def testmaterialized_output_is_bit_identical():
+def test_materialized_output_is_bit_identical():
     """The fusion barrier on the safe range's outputs changes no value (sign of zero, inf,
     NaN, subnormal included), jitted and vmapped."""
     x = np.array([[0.0, -0.0, 1.5, -3.25e-38, np.inf, -np.inf, np.nan, 1e-45]], np.float32).repeat(3, 0)
