@@ -196,8 +196,12 @@ class PathTrackingEnv(Env):
     # -- episode ----------------------------------------------------------------------------
 
     def path(self, index: Array, n_knots: Array | None = None) -> S.Path:
-        """The dataset path ``index`` (truncated to ``n_knots`` if given)."""
-        path = jax.tree.map(lambda x: x[index], self.paths)
+        """The dataset path ``index`` (truncated to ``n_knots`` if given), copied."""
+        return self.dataset_path(index, n_knots).materialize()
+
+    def dataset_path(self, index: Array, n_knots: Array | None = None) -> S.DatasetPath:
+        """The dataset path ``index`` (truncated to ``n_knots`` if given), read in place."""
+        path = S.DatasetPath.of(self.paths, index)
         return path if n_knots is None else path._replace(n_knots=n_knots)
 
     def initial_state(self, rng: Array, index: Array | None = None) -> TrackState:
@@ -208,7 +212,7 @@ class PathTrackingEnv(Env):
         if index is None:
             index = jax.random.randint(k_path, (), 0, self.n_paths)
         index = jnp.asarray(index, jnp.int32)
-        full = self.path(index)
+        full = self.dataset_path(index)
         total = full.length
         path, s0 = S.sample_sub_path(full, k_sub, cfg.start_range, cfg.min_fraction, cfg.max_fraction)
         s0 = jnp.minimum(s0, path.length)
@@ -220,11 +224,17 @@ class PathTrackingEnv(Env):
         return TrackState(p=p, v=zero, a=zero, s=s0, s_start=s0, path_index=index,
                           n_knots=path.n_knots, steps=jnp.zeros((), jnp.int32),
                           max_steps=jnp.maximum(trajectory_length - 1, 1), braking=jnp.zeros((), bool), rng=rng,
-                          path=path if cfg.adjustable else None, executor=self.executor.init(p))
+                          path=path.materialize() if cfg.adjustable else None, executor=self.executor.init(p))
 
     def episode_path(self, track: TrackState) -> S.Path:
-        """The reference of the episode ``track`` is in."""
+        """The reference of the episode ``track`` is in (a copy of the dataset path)."""
         return track.path if track.path is not None else self.path(track.path_index, track.n_knots)
+
+    def reference(self, track: TrackState) -> S.AnyPath:
+        """The reference of the episode ``track`` is in, for the :mod:`~mjx_pathtrack.spline`
+        functions: the dataset path read in place (:class:`~mjx_pathtrack.spline.DatasetPath`),
+        or the episode's own path if the config is ``adjustable``."""
+        return track.path if track.path is not None else self.dataset_path(track.path_index, track.n_knots)
 
     def replace_reference(self, state: State, new_knots: Array, n_new: Array | None = None) -> State:
         """Replace the reference ahead of the current position by a spline through ``new_knots
@@ -246,7 +256,7 @@ class PathTrackingEnv(Env):
     def transition(self, track: TrackState, action: Array):
         """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``."""
         cfg, lim = self.config, self.limits
-        path = self.episode_path(track)
+        path = self.reference(track)
         # the safe range of the current state (computed here rather than at the end of the
         # previous step, so that a reset does not pay for it)
         a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
@@ -278,7 +288,7 @@ class PathTrackingEnv(Env):
         done = done_stop | done_dev | done_time | failed
         # finishing early must not lower the return: the stop reward counts for every remaining step
         reward = jnp.where(done_stop, reward * (track.max_steps + 1 - steps).astype(jnp.float32), reward)
-        final_dev = R.weighted_deviation(path.knots[path.n_knots - 1], executed[-1], cfg.deviation_weights)
+        final_dev = R.weighted_deviation(S.end_knot(path), executed[-1], cfg.deviation_weights)
         success = done & ~done_dev & ~failed & (final_dev < cfg.success_deviation)
         metrics = {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}, "length": length, "d_max": d_max,
                    "d_mean": d_mean, "progress": (s1 - track.s_start) / jnp.maximum(path.length - track.s_start, 1e-9),
@@ -308,7 +318,7 @@ class PathTrackingEnv(Env):
         return ("reward",) + tuple(f"reward/{k}" for k in terms) + ("length", "d_max", "d_mean", "progress", "reached_end",
                                                       "success", "terminated_deviation", "task_failed")
 
-    def _progress_and_deviation(self, path: S.Path, s0: Array, executed: Array) -> tuple[Array, Array]:
+    def _progress_and_deviation(self, path: S.AnyPath, s0: Array, executed: Array) -> tuple[Array, Array]:
         """Arc length ``l`` of the executed polyline ``[S+1, m]`` and deviations ``[M]`` at
         ``M`` equally spaced arc lengths (start excluded) against the reference at ``s0 + offset``."""
         cfg = self.config
@@ -326,7 +336,7 @@ class PathTrackingEnv(Env):
     def observe(self, track: TrackState) -> Array:
         """Observation ``[obs_size]`` in [-1, 1] (REFERENCE §2 items 2-8)."""
         cfg, lim = self.config, self.limits
-        path = self.episode_path(track)
+        path = self.reference(track)
         window = S.knot_window(path, track.s, cfg.n_next)
         knots_lo, knots_hi = lim.pos_min[self.path_joints], lim.pos_max[self.path_joints]
         scale = cfg.n_next * self.max_dis

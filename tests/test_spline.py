@@ -230,6 +230,56 @@ def test_stack_and_vmap_match_single_paths(path):
         S.make_path(smooth_knots(25), 10)
 
 
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_searchsorted_row_equals_searchsorted_of_the_copied_row(side):
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 7, 8, 1385):
+        # sorted rows with ties (rounded values) and queries on, between and outside the entries
+        table = np.sort(np.round(rng.uniform(0, 5, (3, n)), 1), axis=1).astype(np.float32)
+        queries = np.concatenate([table[1], table[1] + 0.05, [-1.0, 0.0, 5.0, 6.0]]).astype(np.float32)
+        got = jax.jit(lambda r, v: S.searchsorted_row(table, r, v, side))(1, queries)
+        np.testing.assert_array_equal(got, np.searchsorted(table[1], queries, side=side))
+        rows = np.arange(3)
+        got = jax.vmap(lambda r: S.searchsorted_row(table, r, queries, side))(rows)
+        np.testing.assert_array_equal(got, [np.searchsorted(table[r], queries, side=side) for r in rows])
+    with pytest.raises(ValueError, match="side"):
+        S.searchsorted_row(table, 0, queries, "middle")
+
+
+def test_dataset_path_reads_the_row_in_place_bit_for_bit(path):
+    """Every function on a DatasetPath equals the same function on the copied row (vmapped)."""
+    batch = S.stack_paths([path, S.make_path(smooth_knots(25, seed=3), MAX_KNOTS),
+                           S.make_path(smooth_knots(12, seed=5), MAX_KNOTS)])
+    rows = jnp.array([2, 0, 1, 0])
+    cut = jnp.array([5, 40, 20, 3], jnp.int32)
+    s = jnp.array([[0.0, 0.3, 9.9], [1.5, 2.5, 1e3], [-1.0, 0.7, 2.2], [0.1, 0.2, 0.4]])
+
+    def both(fn):
+        lazy = jax.jit(jax.vmap(lambda r, k, x: fn(S.DatasetPath.of(batch, r)._replace(n_knots=k), x)))(rows, cut, s)
+        copy = jax.jit(jax.vmap(lambda r, k, x: fn(S.DatasetPath.of(batch, r).materialize()._replace(n_knots=k), x)))(
+            rows, cut, s)
+        for a, b in zip(jax.tree_util.tree_leaves(lazy), jax.tree_util.tree_leaves(copy)):
+            np.testing.assert_array_equal(a, b)
+        return lazy
+
+    both(S.point_at)
+    both(S.tangent_at)
+    both(S.locate)
+    both(S.remaining_length)
+    both(lambda p, x: (p.length, S.end_knot(p)))
+    window = both(lambda p, x: S.knot_window(p, x[1], N_WINDOW))
+    assert int(window.index[3, -1]) == 2   # row 0 cut to 3 knots: the window saturates at its end
+    both(lambda p, x: S.truncate_at(p, x[1]).n_knots)
+    both(lambda p, x: S.deviation(p, x[0], jnp.array([0.1, 0.2]), jnp.zeros((2, 7))))
+    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    lazy = jax.vmap(lambda r, k: S.sample_sub_path(S.DatasetPath.of(batch, r), k))(rows, keys)
+    copy = jax.vmap(lambda r, k: S.sample_sub_path(S.DatasetPath.of(batch, r).materialize(), k))(rows, keys)
+    np.testing.assert_array_equal(lazy[0].n_knots, copy[0].n_knots)
+    np.testing.assert_array_equal(lazy[1], copy[1])
+    full = S.DatasetPath.of(batch, 1)
+    assert int(full.n_knots) == 25 and full.samples_per_segment == path.samples_per_segment
+
+
 def test_truncate_at_snaps_to_next_knot(path, fit):
     ks = fit.knot_s
     short = S.truncate_at(path, 0.5 * (ks[20] + ks[21]))

@@ -212,7 +212,7 @@ class BallOnPlateEnv(PathTrackingEnv):
         new, reward, done, metrics = super().transition(track, action)
         ex = new.executor
         # Cartesian reference point at the new arc position and the executed end point
-        q_ref = self.home.at[self.path_joints].set(S.point_at(self.episode_path(new), new.s))
+        q_ref = self.home.at[self.path_joints].set(S.point_at(self.reference(new), new.s))
         q_end = new.executor.data.qpos[self.executor.robot.qpos_adr]
         pos, _ = self.executor.robot.fk(jnp.stack([q_ref, q_end]))
         new = new._replace(executor=ex._replace(target=pos[0, 0], relative=pos[0, 0] - pos[1, 0]))

@@ -194,7 +194,7 @@ class HumanoidBalanceEnv(PathTrackingEnv):
         # end points: commanded pose on the current pelvis vs. reference pose on the initial pelvis
         rq = self.robot.qpos_adr
         commanded = self._target_points(data.qpos.at[rq].set(self._robot_q(after.p)))
-        path = self.episode_path(after)
+        path = self.reference(after)
         q_ref = self.home.at[self.path_joints].set(S.point_at(path, after.s))
         reference = self._target_points(self._qpos0.at[rq].set(self._robot_q(q_ref)))
         end_error = jnp.mean(jnp.linalg.norm(commanded - reference, axis=-1))
