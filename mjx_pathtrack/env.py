@@ -362,5 +362,7 @@ def normalize_position(p: Array, lo: Array, hi: Array) -> Array:
     finite = jnp.isfinite(lo) & jnp.isfinite(hi)
     span = jnp.where(finite, hi - lo, 1.0)
     bounded = -1.0 + 2.0 * (p - jnp.where(finite, lo, 0.0)) / span
+    if not isinstance(finite, jax.core.Tracer) and bool(np.all(finite)):
+        return bounded  # known limits, none continuous: the wrapped branch would be dead work
     wrapped = -1.0 + 2.0 * jnp.mod((p + jnp.pi) / (2.0 * jnp.pi), 1.0)
     return jnp.where(finite, bounded, wrapped)

@@ -136,6 +136,14 @@ def test_normalize_position_wraps_continuous_joints():
     hi = jnp.array([1.0, jnp.inf])
     out = normalize_position(jnp.array([0.5, jnp.pi / 2]), lo, hi)
     np.testing.assert_allclose(np.asarray(out), [0.5, 0.5], atol=1e-6)
+    # the same under jit with traced limits, and with known all-finite limits (no wrapped branch)
+    traced = jax.jit(normalize_position)(jnp.array([0.5, jnp.pi / 2]), lo, hi)
+    np.testing.assert_array_equal(traced, out)
+    p = jnp.array([[0.5, -2.0], [-1.0, 3.0]])
+    finite_lo, finite_hi = jnp.array([-1.0, -2.0]), jnp.array([1.0, 3.0])
+    np.testing.assert_array_equal(normalize_position(p, finite_lo, finite_hi),
+                                  jax.jit(normalize_position)(p, finite_lo, finite_hi))
+    np.testing.assert_allclose(normalize_position(p, finite_lo, finite_hi), [[0.5, -1.0], [-1.0, 1.0]])
 
 
 def test_relative_knots_show_knot_minus_position_and_keep_the_rest():
