@@ -355,7 +355,8 @@ class DatasetPath(NamedTuple):
     :func:`deviation` and ``length`` return bit for bit what they return for
     :meth:`materialize`, the copied row, but gather only the entries they need: vmapped over
     environments, copying each environment's row of a dataset (~60 kB at 174 knots) every step
-    was a fifth of the environment step on CPU. ``row`` ``[]`` int32, ``n_knots`` ``[]`` int32;
+    took ~10 % of the environment step's kernel time on CPU (README "Where the CPU time of
+    training goes"). ``row`` ``[]`` int32, ``n_knots`` ``[]`` int32;
     vmap over them (not over ``paths``).
     """
 
