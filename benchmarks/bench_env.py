@@ -7,6 +7,11 @@ Prints steps/s of the full step and of its parts measured in the same run (safe 
 rest), so the ratio shows where the time goes. Uses the committed iiwa random test split.
 Floors (issue 5, batch 2048, CPU): kinematic 200,000 env steps/s; mjx (24 physics sub-steps
 per decision step) 3,000 decision steps/s.
+
+The cost of a step depends on the state (the safe range searches its position bound only for
+joints within reach of a limit), so the step is timed on a cycle of ``--states`` batches taken
+every 25 steps of a training-like rollout (auto-reset, uniform random actions, 30 % of them
+at +-1), not on one state.
 """
 
 from __future__ import annotations
@@ -16,19 +21,41 @@ import time
 
 import mjx_pathtrack  # noqa: F401  (XLA flags before jax starts)
 import jax
+import jax.numpy as jnp
 
 from mjx_pathtrack import limits as L
 from mjx_pathtrack.training import TrainConfig, make_env
+from mjx_pathtrack.wrappers import wrap_for_training
 
 
-def rate(fn, args, batch, repeats):
-    out = fn(*args)
+def rate(fn, arg_cycle, batch, repeats):
+    """Calls/s x batch of ``fn`` over ``repeats`` passes through the argument tuples."""
+    out = [fn(*args) for args in arg_cycle]
     jax.block_until_ready(out)
     t0 = time.perf_counter()
     for _ in range(repeats):
-        out = fn(*args)
+        for args in arg_cycle:
+            out = fn(*args)
     jax.block_until_ready(out)
-    return repeats * batch / (time.perf_counter() - t0)
+    return repeats * len(arg_cycle) * batch / (time.perf_counter() - t0)
+
+
+def rollout_states(env, batch: int, n_states: int, every: int = 25, seed: int = 0):
+    """``[(state, action)]``: ``n_states`` env states of a rollout with auto-reset and random
+    actions, one every ``every`` steps (episodes at all stages, some robots near limits)."""
+    wrapped = wrap_for_training(env, episode_length=1000)
+    template = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(seed), batch))
+    ws = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(seed), batch))
+    step = jax.jit(wrapped.step)
+    key, out = jax.random.PRNGKey(seed + 1), []
+    for t in range(1, n_states * every + 1):
+        key, k1, k2 = jax.random.split(key, 3)
+        u = jax.random.uniform(k1, (batch, env.action_size), minval=-1, maxval=1)
+        u = jnp.where(jax.random.uniform(k2, (batch, 1)) < 0.3, jnp.sign(u), u)
+        ws = step(ws, u)
+        if t % every == 0:
+            out.append((template.replace(pipeline_state=ws.pipeline_state, obs=ws.obs), u))
+    return out
 
 
 def main() -> None:
@@ -36,28 +63,25 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--executor", default="kinematic", choices=("kinematic", "mjx"))
+    parser.add_argument("--states", type=int, default=8, help="rollout states cycled through (one every 25 steps)")
     args = parser.parse_args()
     env = make_env(TrainConfig(executor=args.executor), "test")
-    keys = jax.random.split(jax.random.PRNGKey(0), args.batch)
-    state = jax.jit(jax.vmap(env.reset))(keys)
-    # move the robots off their rest state so the safe range is not trivial
-    actions = jax.random.uniform(jax.random.PRNGKey(1), (args.batch, env.action_size), minval=-1, maxval=1)
+    cycle = rollout_states(env, args.batch, args.states)
     step = jax.jit(jax.vmap(env.step))
-    for _ in range(3):
-        state = step(state, actions)
-    track = state.pipeline_state
-    full = rate(step, (state, actions), args.batch, args.repeats)
-    safe = rate(jax.jit(lambda t: L.safe_acceleration_range(env.limits, t.p, t.v, t.a, env.config.dt)),
-                (track,), args.batch, args.repeats)
-    observe = rate(jax.jit(jax.vmap(env.observe)), (track,), args.batch, args.repeats)
-    print(f"device: {jax.devices()[0].platform}  batch {args.batch}  iiwa random test split")
+    full = rate(step, cycle, args.batch, args.repeats)
+    tracks = [(state.pipeline_state,) for state, _ in cycle]
+    safe = rate(jax.jit(jax.vmap(lambda t: L.safe_acceleration_range(env.limits, t.p, t.v, t.a, env.config.dt))),
+                tracks, args.batch, args.repeats)
+    observe = rate(jax.jit(jax.vmap(env.observe)), tracks, args.batch, args.repeats)
+    print(f"device: {jax.devices()[0].platform}  batch {args.batch}  iiwa random test split  "
+          f"{len(cycle)} rollout states")
     print(f"{'env.step (' + args.executor + ')':<27}: {full:12,.0f} env-steps/s")
     print(f"  safe range alone         : {safe:12,.0f} env-steps/s  (~{100 * full / safe:3.0f} % of the step time)")
     print(f"  observation alone        : {observe:12,.0f} env-steps/s")
     devices = jax.local_device_count()
     if devices > 1 and args.batch % devices == 0:
         # the batch sharded over all local devices, as Brax PPO does (jax.pmap)
-        split = jax.tree.map(lambda x: x.reshape((devices, -1) + x.shape[1:]), (state, actions))
+        split = [jax.tree.map(lambda x: x.reshape((devices, -1) + x.shape[1:]), args_) for args_ in cycle]
         sharded = rate(jax.pmap(jax.vmap(env.step)), split, args.batch, args.repeats)
         print(f"env.step on {devices} devices (pmap):  {sharded:12,.0f} env-steps/s  ({sharded / full:.2f}x)")
 
