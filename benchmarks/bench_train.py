@@ -27,7 +27,7 @@ import mjx_pathtrack  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from bench_env import rate  # same directory: the timing loop of the env benchmark
+from bench_env import rate, rollout_states  # same directory: the timing loop and states of the env benchmark
 from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks, train
 
 
@@ -52,9 +52,8 @@ def main() -> None:
     brax_sps = float(last["training/sps"])
 
     env = make_env(config, "train")
-    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), args.num_envs))
-    env_only = rate(jax.jit(jax.vmap(env.step)), (state, jnp.zeros((args.num_envs, env.action_size))),
-                    args.num_envs, max(10, 40960 // args.num_envs))
+    cycle = rollout_states(env, args.num_envs, 4)  # the step's cost depends on the state
+    env_only = rate(jax.jit(jax.vmap(env.step)), cycle, args.num_envs, max(3, 10240 // args.num_envs))
     sgd = sgd_rate(config, env)
     print(f"device: {jax.devices()[0].platform} x {jax.local_device_count()}  num_envs {args.num_envs}  "
           f"layers {tuple(args.layers)}")
@@ -112,7 +111,7 @@ def sgd_rate(config, env) -> float:
         return jax.lax.scan(epoch, (params, opt_state, key), None, length=config.num_updates_per_batch)[0]
 
     env_steps = b * config.unroll_length  # per PPO iteration
-    return rate(iteration, (params, optimizer.init(params), key), env_steps, 3)
+    return rate(iteration, [(params, optimizer.init(params), key)], env_steps, 3)
 
 
 if __name__ == "__main__":
