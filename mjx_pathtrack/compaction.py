@@ -8,7 +8,8 @@ actually needed) and scatters the results back. Under ``vmap`` a ``custom_vmap``
 the same compaction to the whole batch, so the saving is across environments.
 
 The function must be *elementwise over lanes*: lane ``i`` of the result depends only on lane
-``i`` of the arguments. Lanes that do not need it get ``fill``.
+``i`` of the arguments. Lanes that do not need it get ``fill``. Called eagerly (outside
+``jit``), the function simply runs on every lane.
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ def where_needed(fn: Callable, need, *args, fill: float = 0.0):
     arrays ``[m]`` to a pytree of arrays ``[m]`` elementwise. Jittable and vmappable (a vmap is
     compacted across the batch). Example: ``where_needed(jnp.sqrt, x > 0, x)``."""
     need = jnp.asarray(need, bool)
+    if _concrete(need, *args):
+        return _everywhere(fn, need, args, fill)
 
     @jax.custom_batching.custom_vmap
     def apply(need, *args):
@@ -57,10 +60,25 @@ def where_needed(fn: Callable, need, *args, fill: float = 0.0):
                 return jnp.broadcast_to(x.reshape(x.shape[:1] + (1,) * (len(shape) - (x.ndim - 1)) + x.shape[1:]), full)
             return jnp.broadcast_to(x, full)
 
-        out = apply(lift(need, batched_need), *(lift(x, b) for x, b in zip(args, batched_args)))
+        need, args = lift(need, batched_need), [lift(x, b) for x, b in zip(args, batched_args)]
+        out = _everywhere(fn, need, args, fill) if _concrete(need, *args) else apply(need, *args)
         return out, jax.tree.map(lambda _: True, out)
 
     return apply(need, *args)
+
+
+def _concrete(*xs) -> bool:
+    """True outside any trace (eager calls, incl. the rule of an eager ``vmap``)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _everywhere(fn, need, args, fill):
+    """``fn`` on every lane, ``fill`` where not needed. For eager calls: there the loop of
+    :func:`_compacted` would be traced and compiled anew on every call (``fn`` is usually a new
+    closure), which costs far more than the lanes it saves."""
+    shape = jnp.broadcast_shapes(need.shape, *(jnp.shape(x) for x in args))
+    out = fn(*(jnp.broadcast_to(jnp.asarray(x), shape) for x in args))
+    return jax.tree.map(lambda r: jnp.where(need, r, jnp.asarray(fill, r.dtype)), out)
 
 
 def _compacted(fn, need, args, fill):

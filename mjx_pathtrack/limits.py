@@ -440,6 +440,9 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, 
     lanes get ``hi``, verified exactly like the search would. The search runs on the other
     lanes only, gathered into chunks across the batch (:func:`compaction.where_needed`), so
     its cost scales with the joints that are near a limit, not with the batch."""
+    if compaction._concrete(p0, v0, a0, lo, hi):  # eager, op by op: no loop to save
+        return _position_search(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, A, delta, lo, hi, iterations, tail_steps)
+
     def excess(a1):
         if tail_steps:
             peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail_steps)

@@ -76,3 +76,18 @@ def test_chunk_size_grows_with_the_batch():
     assert C.chunk_size(128) == 128
     assert C.chunk_size(2048) == 128
     assert C.chunk_size(12288) == 768
+
+
+def test_eager_calls_run_on_every_lane_without_a_loop():
+    """Outside jit a compiled loop would be rebuilt on every call: the function then runs on all
+    lanes once (and the result is the same)."""
+    calls = []
+
+    def fn(x):
+        calls.append(x.shape)
+        return x * 2.0
+
+    x = jnp.arange(300, dtype=jnp.float32)
+    out = C.where_needed(fn, x > 100, x)
+    np.testing.assert_array_equal(np.asarray(out), np.where(np.asarray(x) > 100, 2.0 * np.asarray(x), 0.0))
+    assert calls == [(300,)]
