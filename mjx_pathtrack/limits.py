@@ -430,6 +430,17 @@ def _step0_root(p0, v0, a0, T, dt):
     return jnp.where(valid, a1, jnp.inf)
 
 
+def _stop_excess(p0, v0, a0, a1, P, reserve, V_floor, V_limit, settle, dt, A, delta, tail_steps):
+    """Exact stop peak from ``a1`` minus the target ``max(P - reserve k_stop, p0)`` (> 0: ``a1``
+    is not safe) and the stop step ``k_stop``: the velocity-safe stop with ``tail_steps``
+    simulated steps, or the plain braking peak when ``tail_steps == 0``. Elementwise."""
+    if tail_steps:
+        peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail_steps)
+    else:
+        peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
+    return peak - jnp.maximum(P - reserve * k_stop, p0), k_stop
+
+
 def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, A, delta, lo, hi, iterations, tail_steps):
     """:func:`_position_search`, run only where it can return less than ``hi`` (elementwise).
 
@@ -443,14 +454,7 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, 
     if compaction._concrete(p0, v0, a0, lo, hi):  # eager, op by op: no loop to save
         return _position_search(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, A, delta, lo, hi, iterations, tail_steps)
 
-    def excess(a1):
-        if tail_steps:
-            peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail_steps)
-        else:
-            peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
-        return peak - jnp.maximum(P - reserve * k_stop, p0), k_stop
-
-    g, k_hi = excess(hi)
+    g, k_hi = _stop_excess(p0, v0, a0, hi, P, reserve, V_floor, V_limit, settle, dt, A, delta, tail_steps)
     easy = (g <= 0) & (lo <= hi)
     if not tail_steps:
         peak, _, k_model, _ = _stop_model(p0, v0, a0, hi, dt, A, delta)
@@ -487,12 +491,7 @@ def _position_search(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, A, de
     verified values are returned (or ``lo``)."""
 
     def excess(a1):
-        """Exact peak minus target (> 0: a1 is not safe) and the stop step."""
-        if tail_steps:
-            peak, k_stop = _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail_steps)
-        else:
-            peak, k_stop = _braking_peak(p0, v0, a0, a1, dt, A, delta)
-        return peak - jnp.maximum(P - reserve * k_stop, p0), k_stop
+        return _stop_excess(p0, v0, a0, a1, P, reserve, V_floor, V_limit, settle, dt, A, delta, tail_steps)
 
     def newton(x):
         peak, slope, k_stop, hold_root = _stop_model(p0, v0, a0, x, dt, A, delta)
