@@ -104,6 +104,12 @@ def use_compilation_cache(directory: str | None) -> None:
 def main(argv=None) -> int:
     args, config = parse_args(argv)
     use_compilation_cache(args.compilation_cache)
+    if config.executor == "kinematic" and not args.sweep:
+        # No MJX physics in this run: XLA's default CPU fusion emitters train faster than the
+        # package's MJX fix (mjx_pathtrack/_xla.py); a user's own flag is kept.
+        from mjx_pathtrack import _xla
+
+        _xla.drop_cpu_fix()
     if args.sweep:
         from mjx_pathtrack import sweep
 

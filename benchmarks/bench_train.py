@@ -12,6 +12,9 @@ and prints, measured in the same run:
 * the env-step rate of the same environment without learning (``jax.jit(jax.vmap(env.step))``),
 * the rate of the SGD alone: one iteration's shuffled PPO minibatch updates on synthetic data.
 All local JAX devices are used (on CPU: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``).
+Like ``train.py`` with the kinematic executor, it runs with XLA's default CPU fusion emitters
+(``mjx_pathtrack._xla.drop_cpu_fix``); ``--mjx-fusion-fix`` keeps the package's MJX flag
+instead, for comparison.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import argparse
 import csv
 import dataclasses
 import functools
+import os
 import tempfile
 from pathlib import Path
 
@@ -28,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from bench_env import rate, rollout_states  # same directory: the timing loop and states of the env benchmark
+from mjx_pathtrack import _xla
 from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks, train
 
 
@@ -38,7 +43,13 @@ def main() -> None:
     parser.add_argument("--num-evals", type=int, default=4, help="progress rows (the first is before training); >= 4")
     parser.add_argument("--layers", type=int, nargs="+", default=list(TrainConfig().policy_layers),
                         help="hidden layers of both the policy and the value network")
+    parser.add_argument("--mjx-fusion-fix", action="store_true",
+                        help="keep --xla_cpu_use_fusion_emitters=false (what MJX runs need) instead of "
+                             "dropping it as train.py does for the kinematic executor")
     args = parser.parse_args()
+    if not args.mjx_fusion_fix:
+        _xla.drop_cpu_fix()
+    legacy = _xla.FUSION_FLAG in os.environ.get("XLA_FLAGS", "").split()
     config = dataclasses.replace(TrainConfig(), num_envs=args.num_envs, num_timesteps=args.num_timesteps,
                                  num_evals=args.num_evals, eval_episodes=16,
                                  policy_layers=tuple(args.layers), value_layers=tuple(args.layers))
@@ -56,7 +67,7 @@ def main() -> None:
     env_only = rate(jax.jit(jax.vmap(env.step)), cycle, args.num_envs, max(3, 10240 // args.num_envs))
     sgd = sgd_rate(config, env)
     print(f"device: {jax.devices()[0].platform} x {jax.local_device_count()}  num_envs {args.num_envs}  "
-          f"layers {tuple(args.layers)}")
+          f"layers {tuple(args.layers)}  XLA CPU fusion emitters: {'legacy (MJX fix)' if legacy else 'default'}")
     print(f"PPO training, wall clock incl. evaluations : {training:12,.0f} env-steps/s")
     print(f"PPO training, Brax training/sps            : {brax_sps:12,.0f} env-steps/s  (rollouts + updates)")
     print(f"env.step alone (one device)                : {env_only:12,.0f} env-steps/s  (training = {training / env_only:.2f} of it)")

@@ -38,7 +38,7 @@ def where_needed(fn: Callable, need, *args, fill: float = 0.0):
     arrays ``[m]`` to a pytree of arrays ``[m]`` elementwise. Jittable and vmappable (a vmap is
     compacted across the batch). Example: ``where_needed(jnp.sqrt, x > 0, x)``."""
     need = jnp.asarray(need, bool)
-    if _concrete(need, *args):
+    if is_concrete(need, *args):
         return _everywhere(fn, need, args, fill)
 
     @jax.custom_batching.custom_vmap
@@ -61,13 +61,13 @@ def where_needed(fn: Callable, need, *args, fill: float = 0.0):
             return jnp.broadcast_to(x, full)
 
         need, args = lift(need, batched_need), [lift(x, b) for x, b in zip(args, batched_args)]
-        out = _everywhere(fn, need, args, fill) if _concrete(need, *args) else apply(need, *args)
+        out = _everywhere(fn, need, args, fill) if is_concrete(need, *args) else apply(need, *args)
         return out, jax.tree.map(lambda _: True, out)
 
     return apply(need, *args)
 
 
-def _concrete(*xs) -> bool:
+def is_concrete(*xs) -> bool:
     """True outside any trace (eager calls, incl. the rule of an eager ``vmap``)."""
     return not any(isinstance(x, jax.core.Tracer) for x in xs)
 

@@ -451,7 +451,7 @@ def _position_upper_bound(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, 
     lanes get ``hi``, verified exactly like the search would. The search runs on the other
     lanes only, gathered into chunks across the batch (:func:`compaction.where_needed`), so
     its cost scales with the joints that are near a limit, not with the batch."""
-    if compaction._concrete(p0, v0, a0, lo, hi):  # eager, op by op: no loop to save
+    if compaction.is_concrete(p0, v0, a0, lo, hi):  # eager, op by op: no loop to save
         return _position_search(p0, v0, a0, P, reserve, V_floor, V_limit, settle, dt, A, delta, lo, hi, iterations, tail_steps)
 
     g, k_hi = _stop_excess(p0, v0, a0, hi, P, reserve, V_floor, V_limit, settle, dt, A, delta, tail_steps)

@@ -5,10 +5,15 @@ import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-# One persistent XLA compilation cache per test session (also inherited by subprocesses): the
-# training tests compile the same PPO program several times. Set before JAX is imported.
-if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+# One persistent XLA compilation cache per test process (also inherited by the subprocesses a
+# test starts): the training tests compile the same PPO program several times. Set before JAX is
+# imported. Under pytest-xdist every worker gets its own directory (the workers inherit the
+# controller's environment): JAX writes cache entries without a lock, so two processes must not
+# share one. A cache directory the user set is left alone.
+_OWNER = "MJX_PATHTRACK_TEST_CACHE_OWNER"
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ or os.environ.get(_OWNER, str(os.getpid())) != str(os.getpid()):
     _cache = tempfile.mkdtemp(prefix="mjx_pathtrack_xla_cache_")
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+    os.environ[_OWNER] = str(os.getpid())
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")

@@ -7,9 +7,11 @@ import sys
 import pytest
 
 from mjx_pathtrack._xla import (
+    ADDED_VAR,
     FUSION_FLAG,
     OPT_OUT_VAR,
     configure_xla_flags,
+    drop_cpu_fix,
     jaxlib_knows_flag,
     xla_flags_with_cpu_fix,
 )
@@ -102,8 +104,26 @@ def test_cpu_platform_gets_flag(platform_env):
     assert env["XLA_FLAGS"] == FUSION_FLAG
 
 
+@pytest.mark.parametrize("user_flags", ["", USER_FLAG, f"{USER_FLAG} --xla_dump_to=/tmp/x"])
+def test_drop_takes_out_exactly_the_flag_this_package_added(user_flags):
+    env = {"XLA_FLAGS": user_flags} if user_flags else {}
+    assert configure_xla_flags(env)
+    assert env[ADDED_VAR] == FUSION_FLAG
+    assert drop_cpu_fix(env)
+    assert env == ({"XLA_FLAGS": user_flags} if user_flags else {})
+    assert not drop_cpu_fix(env)  # nothing left to take out
+
+
+@pytest.mark.parametrize("flags", [FUSION_FLAG, f"{USER_FLAG} {FUSION_FLAG}"])
+def test_drop_keeps_a_users_own_flag(flags):
+    env = {"XLA_FLAGS": flags}
+    assert not configure_xla_flags(env)  # the user chose a value: not ours
+    assert not drop_cpu_fix(env)
+    assert env == {"XLA_FLAGS": flags}
+
+
 def _run(code):
-    env = {k: v for k, v in os.environ.items() if k not in ("JAX_PLATFORMS", "JAX_PLATFORM_NAME", OPT_OUT_VAR)}
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_PLATFORMS", "JAX_PLATFORM_NAME", OPT_OUT_VAR, ADDED_VAR)}
     env["XLA_FLAGS"] = USER_FLAG
     env["JAX_PLATFORMS"] = "cpu"
     result = subprocess.run(
@@ -148,3 +168,12 @@ def test_no_warning_when_jax_imported_but_unused():
         "print(len(w), len(jax.devices()))"
     )
     assert out == "0 2"
+
+
+def test_drop_in_a_fresh_process_only_before_the_backend_starts():
+    out = _run("import mjx_pathtrack, os; from mjx_pathtrack import _xla\n"
+               "print(_xla.drop_cpu_fix(), os.environ['XLA_FLAGS'])")
+    assert out == f"True {USER_FLAG}"
+    out = _run("import mjx_pathtrack, os, jax; from mjx_pathtrack import _xla; jax.devices()\n"
+               "print(_xla.drop_cpu_fix(), _xla.FUSION_FLAG in os.environ['XLA_FLAGS'].split())")
+    assert out == "False True"  # too late: XLA has read its flags
