@@ -40,6 +40,9 @@ def where_needed(fn: Callable, need, *args, fill: float = 0.0):
     need = jnp.asarray(need, bool)
     if is_concrete(need, *args):
         return _everywhere(fn, need, args, fill)
+    # jitted once here so that its trace is reused (the output shapes and the loop body of
+    # _compacted see the same chunk): the search is traced once per chunk size, not twice
+    fn = jax.jit(fn)
 
     @jax.custom_batching.custom_vmap
     def apply(need, *args):

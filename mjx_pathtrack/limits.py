@@ -64,8 +64,10 @@ REFERENCE §5.2) and has no velocity-safe tail and no float32 reserve; here the 
 simpler (one braking profile) but verified with an exact check, and the tail is the extra cost.
 
 Float32: limits are pulled in by ``MARGIN``; each planned stop keeps a position reserve per
-decision step until the stop and a small velocity reserve, so re-evaluating the same plan on
-the next step after rounding never turns it infeasible.
+decision step until the stop and a small velocity reserve, and each velocity plan aims a little
+lower per decision step until its peak (never at the hard limit itself), so re-evaluating the
+same plan on the next step after rounding never turns it infeasible. A state that rounding
+left on a limit or a few ulps beyond it is treated as *on* it (tests/test_limits_border.py).
 
 *Narrow corridors*: a stop that brakes as hard as possible reaches ``P`` with the acceleration
 near ``-A``; with a low jerk limit the joint then rebounds, and in a position corridor that is
@@ -77,7 +79,8 @@ except that a joint already moving away keeps the speed it has. Such a stop neve
 so one side's plan cannot push the joint into the other side. It costs a longer simulated tail
 and approaches the limits more cautiously.
 
-States that already violate a limit (bad input) get the range that recovers fastest,
+States that already violate a limit (bad input) get the range that recovers fastest without
+breaking the opposite side later (the other side's own bound),
 collapsed to one value, and are flagged; the result is never NaN.
 
 Shapes: limits are ``[n]``; states ``[..., n]`` with any leading batch shape. Units: rad, rad/s,
@@ -311,7 +314,8 @@ def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail
     # (including what it still gains while the acceleration rises back to zero on the grid,
     # n = ceil(a / delta) steps, with 2 % slack so that the floor is not met only by rounding)
     V_floor = jnp.minimum(jnp.maximum(V_floor, 1.02 * (_rise_loss(jnp.maximum(-a, 0.0), delta, dt) - v)), V_limit)
-    for _ in range(tail_steps):
+    def tail_step(_, state):
+        p, v, a, best = state
         floor = -_velocity_upper_bound(-v, -a, V_floor, dt, A, delta, settle)
         # (the search range is velocity-feasible, so the floor exceeds the jerk range only by
         # the V_tail reserve; the clip keeps the jerk limit)
@@ -319,7 +323,12 @@ def _safe_stop_peak(p0, v0, a0, a1, dt, A, delta, V_floor, V_limit, settle, tail
         a_next = materialized(jnp.clip(jnp.maximum(jnp.maximum(a - delta, -A), floor), None, jnp.minimum(a + delta, A)))
         best = jnp.maximum(best, _segment_max_position(p, v, a, (a_next - a) / dt, dt))
         p, v, _ = integrate(p, v, a, a_next, dt, dt)
-        a = a_next
+        return p, v, a_next, best
+
+    # a loop, not unrolled: the tail is traced and compiled once per call site (unrolled, the
+    # 8-16 steps of jerk-binding limits made the range's program ~3x larger and slower to build)
+    shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in (p, v, a, best, V_floor, A, delta)))
+    p, v, a, best = jax.lax.fori_loop(0, tail_steps, tail_step, tuple(jnp.broadcast_to(x, shape) for x in (p, v, a, best)))
     # Still rising after the simulated steps: bound the rest of the rise. The velocity grows by
     # at most a t_ramp while the acceleration falls to zero, and the stop takes at most
     # 2 t_ramp + v_up / A more (fall to -A, hold, and the rise of the settling).
@@ -594,28 +603,47 @@ def _velocity_upper_bound(v0, a0, V, dt, A, delta, settle):
     # a branch's upper end is accepted and clamped down to that end (lower a1 = lower peak, so
     # safe); m_cont is an estimate, so its neighbours on both sides are tried.
     tol = 64.0 * float(np.finfo(np.float32).eps) * (jnp.abs(c) + delta)
+    # Targets: a plan whose velocity peak comes k decision steps from now aims at V_in - k eps
+    # (k = m + 1 for x > 0, k = m for x <= 0, k = 0 in-step below), V_in half-way between V and
+    # the hard limit V (1 + MARGIN). One step later the same plan is re-evaluated as the branch
+    # with one step fewer, against a target eps higher: that absorbs its float32 rounding (like
+    # the position bound's reserve per step), where one shared target made the re-evaluated
+    # bound land a few ulps below the jerk floor (an empty range, found by a chattering policy).
+    V_in = V * (1.0 + 0.5 * MARGIN)
+    eps = 0.25 * MARGIN * V
     best = jnp.full_like(c, -jnp.inf)
     for shift in (-1.0, 0.0, 1.0):
         m = jnp.maximum(m_cont - shift, 0.0)
-        K = c - 0.5 * delta * m * (m + 1.0)
+        grid = 0.5 * delta * m * (m + 1.0)
+        K_pos = c + (V_in - (m + 1.0) * eps - V) / dt - grid
+        K_neg = c + (V_in - m * eps - V) / dt - grid
         # x = a1 - m*delta > 0 : last step ends at -settle
-        b = (2.0 * m + 1.0) * settle - 2.0 * K
-        x_pos = (-b + jnp.sqrt(jnp.maximum(b * b + 16.0 * (m + 1.0) * K * settle, 0.0))) / (4.0 * (m + 1.0))
-        # x <= 0 (m >= 1): zero crossing inside the last full-jerk step
-        x_neg = delta * (-(m + 0.5) + jnp.sqrt(jnp.maximum((m + 0.5) ** 2 + 2.0 * K / delta, 0.0)))
-        for x, valid in ((jnp.minimum(x_pos, delta - settle), (K > 0) & (x_pos > 0) & (x_pos <= delta - settle + tol)),
-                         (jnp.minimum(x_neg, 0.0), (m >= 1) & (x_neg <= tol) & (x_neg > -settle))):
+        b = (2.0 * m + 1.0) * settle - 2.0 * K_pos
+        x_pos = (-b + jnp.sqrt(jnp.maximum(b * b + 16.0 * (m + 1.0) * K_pos * settle, 0.0))) / (4.0 * (m + 1.0))
+        # x <= 0 (m >= 1): zero crossing inside the last full-jerk step. A root x > 0 is
+        # clamped to x = 0 (the acceleration reaches 0 at the end of step m; a lower peak than
+        # the target): with the targets per step above, the x > 0 branch aims one eps lower and
+        # its root can then fall just below 0, so near x = 0 neither root would be accepted.
+        x_neg = delta * (-(m + 0.5) + jnp.sqrt(jnp.maximum((m + 0.5) ** 2 + 2.0 * K_neg / delta, 0.0)))
+        for x, valid in ((jnp.minimum(x_pos, delta - settle), (K_pos > 0) & (x_pos > 0) & (x_pos <= delta - settle + tol)),
+                         (jnp.minimum(x_neg, 0.0), (m >= 1) & (x_neg > -settle))):
             a1 = x + m * delta
             best = jnp.where(valid, jnp.maximum(best, a1), best)
-    # a1 <= 0 and v never rises after the step: only the in-step peak matters. It is checked
-    # against the hard limit (callers plan against V pulled in by MARGIN), so that a state that
-    # ended a hair below V with a tiny positive acceleration is not declared a dead end.
-    V_hard = V * (1.0 + MARGIN)
-    in_step_ok_at_zero = jnp.where(a0 > 0, v0 + 0.5 * a0 * dt, v0) <= V_hard
-    gap = V_hard - v0
+    # a1 <= 0 and v never rises after the step: only the in-step peak matters (k = 0: the last
+    # step of every plan above; aiming at the hard limit itself, a plan ended one float32 ulp
+    # beyond it, and that state was then declared a dead end). A state that rounding left on or a hair
+    # beyond V (up to V_zone, where ``outside`` starts) counts as *on* the limit: with a0 <= 0
+    # its velocity does not rise for any a1 <= 0, and with a0 > 0 the in-step rise is kept
+    # within ``rise`` (a few ulps; the jerk limit makes some rise unavoidable). Only states
+    # beyond V_zone are dead ends here (bad input; the caller recovers from those).
+    V_zone = V * (1.0 + 2.0 * MARGIN)
+    rise = 0.25 * MARGIN * V
+    target = jnp.maximum(V_in, jnp.minimum(v0, V_zone) + rise)
+    in_step_ok_at_zero = jnp.where(a0 > 0, v0 + 0.5 * a0 * dt <= target, v0 <= V_zone)
+    gap = target - v0
     a1_in_step = jnp.where(a0 > 0, a0 - a0 * a0 * dt / (2.0 * jnp.where(gap > 0, gap, 1.0)), jnp.inf)
     a1_in_step = jnp.where((gap <= 0) & (a0 > 0), -jnp.inf, a1_in_step)
-    a1_in_step = jnp.where((gap < 0) & (a0 <= 0), -jnp.inf, a1_in_step)
+    a1_in_step = jnp.where((v0 > V_zone) & (a0 <= 0), -jnp.inf, a1_in_step)
     return jnp.where(in_step_ok_at_zero, jnp.maximum(best, 0.0), jnp.minimum(a1_in_step, 0.0))
 
 
@@ -745,15 +773,29 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
     feasible = k_lo <= k_hi
     s_lo, s_hi = jnp.where(feasible, k_lo, j_lo), jnp.where(feasible, k_hi, j_hi)
 
+    # Both sides in one pass: the lower bound is the upper bound of the mirrored joint, so the
+    # mirrored lanes are appended to the joint axis ([..., 2n]) and searched together (one
+    # program instead of two of the same size).
+    n = limits.n_joints
+
+    def both(upper, lower):
+        return jnp.concatenate([jnp.broadcast_to(upper, p.shape), jnp.broadcast_to(lower, p.shape)], axis=-1)
+
+    def twice(x):  # per-joint values [n] for the [..., 2n] lanes
+        return jnp.concatenate([x, x], axis=-1)
+
+    per_joint = [twice(x) for x in (reserve, floor_v, V_limit, jnp.broadcast_to(settle_tail, (n,)), A, delta)]
+
     def group_bound(P, p, v, a, lo, hi, idx, steps):
-        """Position bound of the joints ``idx`` (static), with ``steps`` simulated tail steps."""
+        """Position bound of the lanes ``idx`` (static, of [..., 2n]), with ``steps`` simulated tail steps."""
         def take(x):
             return x if idx is None else x[..., idx]
 
         Pg = take(P)
         finite = jnp.isfinite(Pg)
+        reserve_g, floor_g, V_limit_g, settle_g, A_g, delta_g = (take(x) for x in per_joint)
         bound = _position_upper_bound(jnp.where(finite, take(p), 0.0), take(v), take(a), jnp.where(finite, Pg, 0.0),
-                                      take(reserve), take(floor_v), take(V_limit), take(settle_tail), dt, take(A), take(delta), take(lo),
+                                      reserve_g, floor_g, V_limit_g, settle_g, dt, A_g, delta_g, take(lo),
                                       take(hi), iterations, steps)
         return jnp.where(finite, bound, jnp.inf)
 
@@ -763,7 +805,7 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
         groups = [(None, plan.rest_steps)]
     else:
         masks = ((~plan.needs_tail, 0), (plan.needs_tail & ~plan.narrow, plan.steps), (plan.narrow, plan.rest_steps))
-        groups = [(np.flatnonzero(m), steps) for m, steps in masks if m.any()]
+        groups = [(np.concatenate([np.flatnonzero(m), n + np.flatnonzero(m)]), steps) for m, steps in masks if m.any()]
         if len(groups) == 1:
             groups = [(None, groups[0][1])]
 
@@ -773,17 +815,22 @@ def safe_acceleration_range_checked(limits: JointLimits, p: Array, v: Array, a: 
         parts = jnp.concatenate([group_bound(P, p, v, a, lo, hi, idx, steps) for idx, steps in groups], axis=-1)
         return parts[..., np.argsort(np.concatenate([idx for idx, _ in groups]))]
 
-    hi = jnp.minimum(k_hi, position_bound(P_hi, p, v, a, s_lo, s_hi))
-    lo = jnp.maximum(k_lo, -position_bound(-P_lo, -p, -v, -a, -s_hi, -s_lo))
+    bounds = position_bound(both(P_hi, -P_lo), both(p, -p), both(v, -v), both(a, -a), both(s_lo, -s_hi), both(s_hi, -s_lo))
+    hi = jnp.minimum(k_hi, bounds[..., :n])
+    lo = jnp.maximum(k_lo, -bounds[..., n:])
     over_p, under_p = p > limits.pos_max + p_tol, p < limits.pos_min - p_tol
     over_v, under_v = v > limits.vel * (1.0 + MARGIN), v < -limits.vel * (1.0 + MARGIN)
     outside = over_p | under_p | over_v | under_v | (jnp.abs(a) > A * (1.0 + MARGIN))
     empty = lo > hi + MARGIN * A
-    # Recovery: a violated upper side pushes a1 down as fast as allowed, a lower side up.
+    # Recovery from an empty range: a violated upper side pushes a1 down as far as the lower
+    # side's own bound allows (the lowest a1 from which the lower side's later steps stay
+    # feasible), a violated lower side up as far as the upper bound allows. Pushing further, to
+    # the jerk limit, would trade the violation for one on the other side a few steps later
+    # (with a binding jerk limit the acceleration cannot swing back in time).
     upper_bad = over_p | over_v | (hi <= j_lo)
     lower_bad = under_p | under_v | (lo >= j_hi)
     mid = 0.5 * (lo + hi)
-    rec = jnp.where(upper_bad & ~lower_bad, hi, jnp.where(lower_bad & ~upper_bad, lo, mid))
+    rec = jnp.where(upper_bad & ~lower_bad, lo, jnp.where(lower_bad & ~upper_bad, hi, mid))
     rec = jnp.clip(rec, j_lo, j_hi)  # the jerk and acceleration limits can always be kept
     # ranges that are empty only by rounding collapse to their midpoint
     a_min = jnp.where(empty, rec, jnp.minimum(lo, mid))
