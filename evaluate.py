@@ -48,6 +48,12 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     from pathlib import Path
 
+    # the cheap checks first: the imports below (JAX, Brax, MuJoCo) take seconds
+    for problem in (f"no run or export directory at {args.source}" if not Path(args.source).is_dir() else None,
+                    f"--paths {args.paths}: no such file" if args.paths and not Path(args.paths).is_file() else None):
+        if problem:
+            print(f"evaluate.py: error: {problem}", file=sys.stderr)
+            return 2
     from mjx_pathtrack import evaluate_run as R
     from mjx_pathtrack.datasets import DatasetError
 

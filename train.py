@@ -48,7 +48,10 @@ def parse_args(argv=None):
     parser.add_argument("--sweep", default=None, metavar="FILE",
                         help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweep.py); the training "
                              "flags below are then ignored: put them in the file's 'base'")
-    parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out exactly from its last checkpoint (same config)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the run that --out holds (without it, a directory holding a run is refused)")
     parser.add_argument("--compilation-cache", default=None, metavar="DIR",
                         help="keep JAX's persistent compilation cache in DIR (default: none, unless "
                              "JAX_COMPILATION_CACHE_DIR is set): a repeated run skips most compilation, and Brax's "
@@ -118,10 +121,18 @@ def main(argv=None) -> int:
 
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    from mjx_pathtrack.training import train
+    from mjx_pathtrack.datasets import DatasetError
+    from mjx_pathtrack.training import ConfigError, RunDirError, TrainingDiverged, train
 
     print(f"devices: {jax.devices()}", flush=True)
-    train(config, args.out, resume=args.resume)
+    try:
+        train(config, args.out, resume=args.resume, overwrite=args.overwrite)
+    except (ConfigError, RunDirError, DatasetError) as e:
+        print(f"train.py: error: {e}", file=sys.stderr)
+        return 2
+    except TrainingDiverged as e:
+        print(f"train.py: {e}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -51,8 +51,10 @@ from mjx_pathtrack.env import EnvConfig, PathTrackingEnv, TrackState
 
 Array = jax.Array
 
-#: default capacity of the held reference (knots from the one before the robot to the end)
-MAX_KNOTS = 64
+#: default capacity of the held reference (knots from the one before the robot to the end):
+#: every committed dataset path fits (the longest has 222 knots); the cost of a step grows
+#: only slowly with it (a knot search over the padded array)
+MAX_KNOTS = 256
 #: a first knot of ``set_path`` this close [rad] to the current position replaces it
 START_TOLERANCE = 1e-4
 #: |v| <= STOP_FRACTION * vel and |a| <= STOP_FRACTION * acc of every joint count as stopped

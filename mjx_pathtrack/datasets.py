@@ -115,6 +115,12 @@ def write_config(file: str | os.PathLike, config: dict) -> None:
     atomic_write(FsPath(file), lambda f: f.write(text.encode()))
 
 
+def known_kinds(robot: str, root=None) -> list[str]:
+    """Names of the datasets of ``robot`` under ``root`` (folders with a ``config.json``)."""
+    base = FsPath(DEFAULT_ROOT if root is None else root) / robot
+    return sorted(d.name for d in base.iterdir() if (d / "config.json").is_file()) if base.is_dir() else []
+
+
 def read_config(robot: str, kind: str, root=None) -> dict:
     """The dataset's ``config.json``; ``DatasetError`` if missing."""
     file = dataset_dir(robot, kind, root) / "config.json"

@@ -149,15 +149,25 @@ def brax_policy(make_inference_fn, params, deterministic: bool = True) -> Policy
 
 
 def make_evaluator(env: PathTrackingEnv, make_inference_fn, n_episodes: int, max_steps: int | None = None,
-                   deterministic: bool = True) -> Callable[[Any, Array], EpisodeMetrics]:
+                   deterministic: bool | None = True) -> Callable[..., EpisodeMetrics]:
     """``evaluator(params, rng) -> EpisodeMetrics``, jitted once (params are an argument, so
-    evaluating new parameters during training does not recompile)."""
+    evaluating new parameters during training does not recompile). ``deterministic=None``:
+    ``evaluator(params, rng, sampled)`` with a bool ``sampled`` that picks sampled actions
+    instead of the mean, both from one compiled program."""
+    if deterministic is not None:
+        @jax.jit
+        def evaluator(params, rng):
+            return evaluate(env, brax_policy(make_inference_fn, params, deterministic), rng, n_episodes, max_steps)
+
+        return evaluator
 
     @jax.jit
-    def evaluator(params, rng):
-        return evaluate(env, brax_policy(make_inference_fn, params, deterministic), rng, n_episodes, max_steps)
+    def either(params, rng, sampled):
+        mean, draw = brax_policy(make_inference_fn, params, True), brax_policy(make_inference_fn, params, False)
+        return evaluate(env, lambda obs, key: jnp.where(sampled, draw(obs, key), mean(obs, key)), rng, n_episodes,
+                        max_steps)
 
-    return evaluator
+    return either
 
 
 # ---------------------------------------------------------------------------------------------

@@ -26,6 +26,13 @@ POLICY_FILE = "policy.jaxexport"
 MANIFEST_FILE = "manifest.json"
 
 
+#: manifest keys that loading and the controller rely on, with their JSON types
+_NUMBER = (int, float)
+REQUIRED_KEYS = {"robot": (str, "a string"), "joint_names": (list, "a list"), "path_joints": (list, "a list"),
+                 "dt": (_NUMBER, "a number"), "n_next": (int, "an integer"), "max_dis_between_knots": (_NUMBER, "a number"),
+                 "limits": (dict, "an object"), "observation_size": (int, "an integer"), "action_size": (int, "an integer")}
+
+
 class ExportError(ValueError):
     """A missing, corrupt or incompatible export; the message says which."""
 
@@ -129,11 +136,18 @@ def load_policy(path: str | os.PathLike) -> ExportedPolicy:
             raise ExportError(f"incomplete export at {root}: {f.name} missing")
     try:
         manifest = json.loads(manifest_file.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ExportError(f"corrupt manifest {manifest_file}: {e}") from e
+    if not isinstance(manifest, dict):
+        raise ExportError(f"{manifest_file}: not a manifest (a JSON object), got {type(manifest).__name__}")
     version = manifest.get("format_version")
     if version != FORMAT_VERSION:
         raise ExportError(f"{manifest_file}: export format version {version}, this package reads {FORMAT_VERSION}")
+    for key, (kind, what) in REQUIRED_KEYS.items():
+        value = manifest.get(key)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise ExportError(f"{manifest_file}: key {key!r} is {'missing' if value is None else repr(value)}, "
+                              f"must be {what}")
     try:
         exported = jax.export.deserialize(bytearray(policy_file.read_bytes()))
     except Exception as e:  # flatbuffer / version errors of jax.export

@@ -1,9 +1,15 @@
-"""Brax PPO training of the path-tracking policy: config, environment wiring, progress, logs,
-checkpoints and resume. ``train.py`` at the repository root is the command-line front end.
+"""PPO training of the path-tracking policy: config and its validation, environment wiring,
+the run directory, progress, logs, exact checkpoints and resume. ``train.py`` at the repository
+root is the command-line front end.
 
-Multi-device: Brax PPO shards the environments over every local JAX device (``jax.pmap``);
-multi-host runs call ``jax.distributed.initialize()`` first (``--distributed`` in train.py), after
-which Brax uses the devices of every process. Nothing here is device specific.
+The algorithm is :mod:`mjx_pathtrack.ppo` (Brax's PPO pieces as a pure function of the whole
+learner state): every evaluation interval ends with a checkpoint of that state, so a run killed
+at any point and resumed with ``resume=True`` ends with the same parameters as an uninterrupted
+one (same machine, same device count).
+
+Multi-device: the environments are split over the local JAX devices and the iterations run
+under ``jax.pmap`` with averaged gradients (data parallel, as Brax does); multi-host runs call
+``jax.distributed.initialize()`` first (``--distributed`` in train.py; not tested here).
 """
 
 from __future__ import annotations
@@ -15,12 +21,13 @@ import os
 import pickle
 import time
 from pathlib import Path as FsPath
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack import _jax_compat, datasets, robots
+from mjx_pathtrack import _jax_compat, datasets, ppo, robots
 from mjx_pathtrack import reward as R
 from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.executors import MjxExecutor
@@ -28,7 +35,6 @@ from mjx_pathtrack.export import export_policy
 from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes
 from mjx_pathtrack.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation import make_evaluator, summarize
-from mjx_pathtrack.wrappers import wrap_for_training
 
 _jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
 
@@ -174,20 +180,26 @@ class Progress:
     """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv`` and
     writes the same scalars as TensorBoard events to ``run_dir/tensorboard``.
 
-    Each row has ``wall_s`` (seconds since this object was made), ``env_steps_per_s`` over the
-    interval since the previous row (the first interval includes compilation) and the metrics
-    passed in (Brax's ``training/*`` and this package's ``eval/*`` summaries)."""
+    Each row has ``wall_s`` (seconds of training so far: since this object was made, plus
+    ``wall_offset`` for a resumed run), ``env_steps_per_s`` over the interval since the previous
+    row (the first interval includes compilation) and the metrics passed in (``training/*``,
+    this package's deterministic ``eval/*`` and sampled ``eval_sampled/*`` summaries)."""
 
-    def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0, echo: bool = True):
+    def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0, echo: bool = True,
+                 wall_offset: float = 0.0):
         from tensorboardX import SummaryWriter
 
         self.file = run_dir / "progress.csv"
         self.board = SummaryWriter(str(run_dir / "tensorboard"))
         self.echo = echo
         self.total = total_steps
-        self.start = time.monotonic()
+        self.start = time.monotonic() - wall_offset
         self.last: tuple[int, float] | None = None
         self.start_step = start_step
+
+    def wall(self) -> float:
+        """Seconds of training so far (including those before a resume)."""
+        return time.monotonic() - self.start
 
     def __call__(self, step: int, metrics: dict[str, Any]) -> None:
         step += self.start_step
@@ -207,124 +219,404 @@ class Progress:
         if self.echo:
             ret = row.get("eval/return", row.get("eval/episode_reward", float("nan")))
             line = f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}"
-            if "eval/end_reached" in row:
-                line += f"  end reached {100 * row['eval/end_reached']:5.1f} %  deviation {row['eval/mean_deviation']:.3f} rad"
+            for prefix, label in (("eval", "deterministic"), ("eval_sampled", "sampled")):
+                if f"{prefix}/end_reached" in row:
+                    line += (f"  {label}: end {100 * row[f'{prefix}/end_reached']:5.1f} %"
+                             f" dev {row[f'{prefix}/mean_deviation']:.3f}")
             print(line, flush=True)
 
 
-def ppo_networks(config: TrainConfig):
-    from brax.training.agents.ppo import networks as ppo_networks_module
+def truncate_progress(file: FsPath, after_step: int) -> None:
+    """Drop the rows of ``progress.csv`` logged after ``after_step`` (a resumed run logs them again)."""
+    import csv
+    import io
 
-    # As in the papers (REFERENCE §6.1): a Gaussian policy whose samples the environment clips
-    # to [-1, 1], a learned state-independent log-std, and a mean head initialised near zero
-    # (normc(0.01) there) so that the initial mean action is ~0, the middle of every safe range:
-    # the robot starts by barely moving instead of leaving the path within a few steps.
-    return functools.partial(ppo_networks_module.make_ppo_networks,
-                             policy_hidden_layer_sizes=config.policy_layers,
-                             value_hidden_layer_sizes=config.value_layers,
-                             distribution_type="normal", noise_std_type="log",
-                             init_noise_std=config.init_noise_std,
-                             mean_clip_scale=config.mean_clip,
-                             mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
-                             mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
-                                                          distribution="truncated_normal"))
+    if not file.is_file():
+        return
+    with open(file, newline="") as f:
+        reader = csv.DictReader(f)
+        fields, rows = reader.fieldnames or [], [r for r in reader if float(r["step"]) <= after_step]
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=fields, restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(file, text.getvalue().encode())
 
 
-def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True):
+#: Brax PPO network factory of a config (kept here under its old name)
+ppo_networks = ppo.networks
+
+
+class ConfigError(ValueError):
+    """A training option that cannot work; the message names the option and the allowed values."""
+
+
+class RunDirError(ValueError):
+    """The run directory cannot be used as asked (holds another run, is a file, not writable)."""
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced non-finite parameters or losses; the last good checkpoint is kept."""
+
+
+def validate_config(config: TrainConfig, devices: int = 1) -> None:
+    """Raise :class:`ConfigError` naming the option unless every option of ``config`` can work:
+    before anything is written or compiled."""
+    c = config
+
+    def fail(option, message):
+        raise ConfigError(f"--{option.replace('_', '-')}: {message}")
+
+    choices = {"executor": EXECUTORS, "task": TASKS}
+    from mjx_pathtrack.env import KNOTS_FRAMES
+
+    choices["knots_frame"] = KNOTS_FRAMES
+    for name, allowed in choices.items():
+        if getattr(c, name) not in allowed:
+            fail(name, f"{getattr(c, name)!r} is not one of {', '.join(allowed)}")
+    if c.task != "balance" and c.robot not in robots.known_robots():
+        fail("robot", f"unknown robot {c.robot!r}; known: {', '.join(robots.known_robots())}")
+    if c.task == "balance":
+        from mjx_pathtrack.tasks.humanoid_balance import LEGS
+
+        if c.legs not in LEGS:
+            fail("legs", f"{c.legs!r} is not one of {', '.join(LEGS)}")
+    for name in ("dt", "duration", "learning_rate", "init_noise_std", "mean_init_scale", "deviation_threshold",
+                 "terminate_deviation"):
+        value = getattr(c, name)
+        if not (np.isfinite(value) and value > 0):
+            fail(name, f"must be a finite number > 0, got {value}")
+    for name in ("alpha", "beta", "action_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
+        value = getattr(c, name)
+        if not (np.isfinite(value) and value >= 0):
+            fail(name, f"must be a finite number >= 0, got {value}")
+    for name, lo, hi in (("discounting", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clipping_epsilon", 0.0, 1.0)):
+        value = getattr(c, name)
+        if not (np.isfinite(value) and lo < value <= hi):
+            fail(name, f"must be in ({lo:g}, {hi:g}], got {value}")
+    if c.mean_clip is not None and not (np.isfinite(c.mean_clip) and c.mean_clip > 0):
+        fail("mean_clip", f"must be a finite number > 0 (or unset), got {c.mean_clip}")
+    for name in ("num_envs", "num_timesteps", "unroll_length", "batch_size", "num_minibatches",
+                 "num_updates_per_batch", "num_evals", "eval_episodes", "n_next"):
+        value = getattr(c, name)
+        if not value >= 1:
+            fail(name, f"must be >= 1, got {value}")
+    if c.num_train_paths < 0:
+        fail("num_train_paths", f"must be >= 0, got {c.num_train_paths}")
+    for name in ("policy_layers", "value_layers"):
+        if not getattr(c, name) or min(getattr(c, name)) < 1:
+            fail(name, f"needs at least one layer, each of size >= 1, got {list(getattr(c, name))}")
+    if c.num_envs % devices:
+        fail("num_envs", f"{c.num_envs} is not a multiple of the {devices} devices it is split over")
+    if (c.batch_size * c.num_minibatches) % c.num_envs:
+        fail("batch_size", f"batch_size * num_minibatches ({c.batch_size} * {c.num_minibatches} = "
+                           f"{c.batch_size * c.num_minibatches}) must be a multiple of --num-envs ({c.num_envs})")
+    if c.executor == "mjx" or c.task in ("ball_on_plate", "balance"):
+        steps = c.dt / robots.SIM_DT
+        if abs(steps - round(steps)) > 1e-6:
+            fail("dt", f"{c.dt} s must be a whole multiple of the physics step {robots.SIM_DT:.6g} s with MJX physics")
+    if c.task == "tracking":
+        try:
+            datasets.read_config(c.robot, c.dataset, c.dataset_root)
+        except datasets.DatasetError as e:
+            known = datasets.known_kinds(c.robot, c.dataset_root)
+            fail("dataset", f"{e}" + (f"; datasets of {c.robot}: {', '.join(known)}" if known else ""))
+
+
+#: files and folders of a run directory that this package writes
+RUN_FILES = ("config.json", "progress.csv", "checkpoints", "params.pkl", "report.json", "export", "tensorboard",
+             "data", "eval")
+
+
+def prepare_run_dir(run_dir: FsPath, resume: bool, overwrite: bool) -> bool:
+    """Check that ``run_dir`` can take this run (nothing is written). Returns whether the
+    directory holds a previous run. Raises :class:`RunDirError`: a file, not writable, or a run
+    that neither ``resume`` nor ``overwrite`` was asked for."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise RunDirError(f"--out {run_dir}: is a file, not a directory")
+    parent = next((p for p in [run_dir, *run_dir.parents] if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise RunDirError(f"--out {run_dir}: cannot create or write it ({parent} is not a writable directory)")
+    held = [name for name in RUN_FILES if (run_dir / name).exists()]
+    if held and not (resume or overwrite):
+        raise RunDirError(f"--out {run_dir}: holds a training run ({', '.join(held)}); use --resume to continue it, "
+                          f"--overwrite to replace it, or choose another --out")
+    if resume and overwrite:
+        raise RunDirError("--resume and --overwrite exclude each other")
+    return bool(held)
+
+
+def clear_run_dir(run_dir: FsPath) -> None:
+    """Remove what this package wrote into ``run_dir`` (``--overwrite``)."""
+    import shutil
+
+    for name in RUN_FILES:
+        target = run_dir / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints: the whole learner state after each evaluation interval
+# ---------------------------------------------------------------------------------------------
+
+CHECKPOINT_FORMAT = 1
+CHECKPOINT_SUFFIX = ".ckpt"
+#: checkpoints kept per run (older ones are deleted)
+KEEP_CHECKPOINTS = 3
+
+
+def checkpoint_path(checkpoints: FsPath, step: int) -> FsPath:
+    return checkpoints / f"{step:012d}{CHECKPOINT_SUFFIX}"
+
+
+def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
+    """The newest checkpoint file and the env steps it stands for, or None. Files are written
+    atomically, so any file found is complete."""
+    if not checkpoints.is_dir():
+        return None
+    found = [(int(f.name[:-len(CHECKPOINT_SUFFIX)]), f) for f in checkpoints.iterdir()
+             if f.name.endswith(CHECKPOINT_SUFFIX) and f.name[:-len(CHECKPOINT_SUFFIX)].isdigit()]
+    if not found:
+        return None
+    step, path = max(found)
+    return path, step
+
+
+def save_checkpoint(checkpoints: FsPath, step: int, state: dict) -> FsPath:
+    """Write ``state`` (host arrays) as the checkpoint of ``step``; keep the newest few."""
+    path = checkpoint_path(checkpoints, step)
+    atomic_write_bytes(path, pickle.dumps({"format": CHECKPOINT_FORMAT, "step": step, **state}))
+    old = sorted(f for f in checkpoints.iterdir() if f.name.endswith(CHECKPOINT_SUFFIX))
+    for f in old[:-KEEP_CHECKPOINTS]:
+        f.unlink()
+    return path
+
+
+def load_checkpoint(path: FsPath) -> dict:
+    data = pickle.loads(path.read_bytes())
+    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+        raise RunDirError(f"{path}: not a checkpoint of this package's format {CHECKPOINT_FORMAT} "
+                          f"(a run from before exact resume? train it again with --overwrite)")
+    return data
+
+
+# ---------------------------------------------------------------------------------------------
+# Training
+# ---------------------------------------------------------------------------------------------
+
+
+class _Program(NamedTuple):
+    core: Any
+    init: Any  # (seed) -> Learner (with a leading device axis when pmapped)
+    epoch: Any  # Learner -> (Learner, summary)
+    devices: int
+    iterations: int  # training iterations per evaluation interval
+    epochs: int
+
+
+def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
+    """The compiled training program: one evaluation interval per call, over the local devices."""
+    c = config
+    devices = jax.local_device_count()
+    processes = jax.process_count()
+    if c.num_envs % (devices * processes):
+        devices = 1 if c.num_envs % processes == 0 else devices
+    axis = ppo.DEVICE_AXIS if devices > 1 else None
+    core = ppo.build(c, env, axis_name=axis)
+    weights = ppo.reward_weights(c)
+    epochs = max(c.num_evals - 1, 1)
+    iterations = max(int(np.ceil(c.num_timesteps / (epochs * core.steps_per_iteration))), 1)
+    envs_per_device = c.num_envs // (devices * processes)
+
+    def epoch(learner):
+        return ppo.run_iterations(core, weights, learner, iterations)
+
+    if devices == 1:
+        def init(seed):
+            return jax.jit(lambda: core.init(seed, weights, envs_per_device, jax.process_index()))()
+
+        return _Program(core, init, jax.jit(epoch, donate_argnums=(0,)), 1, iterations, epochs)
+
+    first = jax.process_index() * devices
+
+    def init(seed):
+        return jax.pmap(lambda d: core.init(seed, weights, envs_per_device, d), axis_name=axis)(
+            first + jnp.arange(devices))
+
+    return _Program(core, init, jax.pmap(epoch, axis_name=axis, donate_argnums=(0,)), devices, iterations, epochs)
+
+
+def _host(tree):
+    return jax.tree.map(np.asarray, jax.device_get(tree))
+
+
+def _brax_params(learner, devices: int):
+    """``(normalizer, policy, value)`` host arrays of a learner (device 0's copy)."""
+    params = (learner.normalizer_params, learner.params.policy, learner.params.value)
+    params = _host(params)
+    return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
+
+
+def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True,
+          overwrite: bool = False):
     """Train; returns ``(make_inference_fn, params, report)`` where ``report`` holds the
-    evaluation summaries before and after training on the test split. The run directory gets
-    ``config.json``, ``progress.csv``, ``checkpoints/``, ``params.pkl``, ``report.json`` and the
-    jitted policy export ``export/`` (:mod:`mjx_pathtrack.export`)."""
-    from brax.training.agents.ppo import train as ppo
+    evaluation summaries before and after training on the test split (deterministic policy:
+    ``before``/``after``; sampled: ``before_sampled``/``after_sampled``). The run directory gets
+    ``config.json``, ``progress.csv``, ``checkpoints/`` (the whole learner state after every
+    evaluation interval), ``params.pkl``, ``report.json`` and the jitted policy export
+    ``export/`` (:mod:`mjx_pathtrack.export`).
 
+    Every option is validated and the run directory checked before anything is written: a
+    directory that holds a run is only continued with ``resume`` (the saved config must be
+    equal) or replaced with ``overwrite``. ``resume`` continues exactly: the final parameters
+    equal those of an uninterrupted run. Non-finite parameters or losses stop the run with
+    :class:`TrainingDiverged`; the last good checkpoint stays."""
     run_dir = FsPath(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    validate_config(config)
+    held = prepare_run_dir(run_dir, resume, overwrite)
     config_file = run_dir / "config.json"
     if resume and config_file.exists():
         saved = TrainConfig.from_json(config_file.read_text())
         if saved != config:
-            raise ValueError(f"--resume: config differs from the saved one in {config_file}")
-    atomic_write_bytes(config_file, (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
+            changed = [f.name for f in dataclasses.fields(TrainConfig) if getattr(saved, f.name) != getattr(config, f.name)]
+            raise ValueError(f"--resume: config differs from the saved one in {config_file} ({', '.join(changed)})")
+    latest = latest_checkpoint(run_dir / "checkpoints") if resume else None
+    checkpoint = load_checkpoint(latest[0]) if latest else None
+    created = not run_dir.exists()
+    try:
+        if overwrite and held:
+            clear_run_dir(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(config_file, (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
+        return _train(config, run_dir, checkpoint, verbose)
+    except BaseException:
+        if created and latest_checkpoint(run_dir / "checkpoints") is None:
+            import shutil
+
+            shutil.rmtree(run_dir, ignore_errors=True)  # nothing trained yet: leave nothing behind
+        raise
+
+
+def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbose: bool):
     root = ensure_train_paths(config.robot, config.dataset, config.num_train_paths, config.dataset_root,
                               run_dir / "data", log=print if verbose else None)
     env, test_env = make_env(config, "train", root), make_env(config, "test", root)
-    checkpoints = run_dir / "checkpoints"
-    latest = latest_checkpoint(checkpoints) if resume else None
-    restore, done_steps = latest if latest else (None, 0)
-    if restore and verbose:
-        print(f"resuming from {restore} ({done_steps:,} of {config.num_timesteps:,} steps done)", flush=True)
-    episode_length = config.env_config().max_episode_steps() + 1
-
-    report: dict[str, Any] = {}
+    program = _program(config, env)
+    core = program.core
+    steps_per_epoch = program.iterations * core.steps_per_iteration
+    total = program.epochs * steps_per_epoch
+    evaluator = make_evaluator(test_env, core.make_policy, config.eval_episodes, deterministic=None)
     eval_key = jax.random.PRNGKey(config.seed + 1)
 
-    evaluators = {}
-    progress = Progress(run_dir, config.num_timesteps, done_steps, echo=verbose)
-    latest: dict[str, float] = {}
+    def evaluation(learner) -> dict[str, float]:
+        params = _brax_params(learner, program.devices)
+        out = {}
+        for sampled, prefix in ((False, "eval"), (True, "eval_sampled")):
+            for k, v in summarize(evaluator(params, eval_key, sampled)).items():
+                out[f"{prefix}/{k}"] = v
+        return out
 
-    def evaluation(make_inference_fn, params) -> dict[str, float]:
-        if "fn" not in evaluators:
-            evaluators["fn"] = make_evaluator(test_env, make_inference_fn, config.eval_episodes)
-        # host copies: parameters fresh from Brax's pmap and from its initialisation differ in
-        # placement, which would compile the evaluator twice (~20 s each on CPU)
-        return summarize(evaluators["fn"](jax.tree.map(np.asarray, params), eval_key))
-
-    def policy_params_fn(step, make_inference_fn, params):
-        # Brax calls this at the start and after every training iteration, before progress_fn:
-        # the evaluation of this package (full test episodes, deterministic policy) replaces
-        # Brax's evaluator, which would run (and compile) a second rollout per evaluation
-        latest.clear()
-        latest.update(evaluation(make_inference_fn, params))
-        if "before" not in report:
-            report["before"] = dict(latest)
-            if verbose:
-                print("evaluation before training:", _fmt(report["before"]), flush=True)
-            progress(step, {f"eval/{k}": v for k, v in latest.items()})
-
-    def progress_fn(step, metrics):
-        progress(step, {**metrics, **{f"eval/{k}": v for k, v in latest.items()}})
-
-    make_inference_fn, params, _ = ppo.train(
-        environment=env, eval_env=test_env, wrap_env_fn=wrap_for_training,
-        num_timesteps=max(config.num_timesteps - done_steps, 1), episode_length=episode_length, num_envs=config.num_envs,
-        learning_rate=config.learning_rate, entropy_cost=config.entropy_cost, discounting=config.discounting,
-        gae_lambda=config.gae_lambda, clipping_epsilon=config.clipping_epsilon,
-        unroll_length=config.unroll_length, batch_size=config.batch_size, num_minibatches=config.num_minibatches,
-        num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals,
-        run_evals=False, num_eval_envs=1,  # Brax still builds (and resets) its unused evaluator
-        normalize_observations=True,
-        network_factory=ppo_networks(config), seed=config.seed,
-        progress_fn=progress_fn, policy_params_fn=policy_params_fn,
-        save_checkpoint_path=str((checkpoints / f"{done_steps:012d}").resolve()),
-        restore_checkpoint_path=str(restore) if restore else None)
-    report["after"] = dict(latest)  # Brax evaluated the final parameters last (policy_params_fn)
+    checkpoints = run_dir / "checkpoints"
+    if checkpoint is None:
+        learner, start_step, wall, evals = program.init(config.seed), 0, 0.0, {}
+        truncate_progress(run_dir / "progress.csv", -1)
+    else:
+        if int(checkpoint["devices"]) != program.devices:
+            raise RunDirError(f"{checkpoints}: written by a run on {checkpoint['devices']} devices, this one has "
+                              f"{program.devices}; resume on the same number of devices")
+        learner = jax.tree.map(jnp.asarray, checkpoint["learner"])
+        start_step, wall, evals = int(checkpoint["step"]), float(checkpoint["wall_s"]), checkpoint["evaluations"]
+        truncate_progress(run_dir / "progress.csv", int(checkpoint["step"]))
+        if verbose:
+            print(f"resuming from {checkpoints.name}/{checkpoint_path(checkpoints, checkpoint['step']).name} "
+                  f"({checkpoint['step']:,} of {total:,} steps done, {wall / 60:.1f} min)", flush=True)
+    progress = Progress(run_dir, total, 0, echo=verbose, wall_offset=wall)
+    if checkpoint is not None:  # the first interval's rate then includes the compilation, as in a new run
+        progress.last = (int(checkpoint["step"]), time.monotonic())
+    if checkpoint is None:
+        evals["before"] = evaluation(learner)
+        if verbose:
+            print("evaluation before training:", _fmt(_unprefix(evals["before"], "eval")), flush=True)
+        progress(0, evals["before"])
+    latest = evals.get("latest", evals["before"])
+    # intervals of steps_per_epoch until the budget is used (a resumed run whose config.json was
+    # edited to a larger num_timesteps goes on with intervals of the new size)
+    step = start_step
+    while step < total:
+        learner, summary = program.epoch(learner)
+        summary = _host(summary)
+        if program.devices > 1:
+            summary = jax.tree.map(lambda x: x[0], summary)
+        step += steps_per_epoch
+        finite = bool(ppo.all_finite((learner.params, learner.normalizer_params))) and \
+            all(np.isfinite(v) for v in summary.values())
+        if not finite:
+            last = latest_checkpoint(checkpoints)
+            raise TrainingDiverged(
+                f"training diverged between steps {step - steps_per_epoch:,} and {step:,}: non-finite parameters or "
+                f"losses (try a lower --learning-rate); the last good checkpoint is "
+                f"{last[0] if last else 'none (diverged in the first interval)'}")
+        latest = evaluation(learner)
+        metrics = {**{f"training/{k}": v for k, v in summary.items()}, **latest}
+        progress(step, metrics)
+        _fault_injection(step)
+        evals["latest"] = latest
+        save_checkpoint(checkpoints, step, {"wall_s": progress.wall(), "devices": program.devices,
+                                            "learner": _host(learner), "evaluations": evals})
+    params = _brax_params(learner, program.devices)
+    report = {"before": _unprefix(evals["before"], "eval"), "after": _unprefix(latest, "eval"),
+              "before_sampled": _unprefix(evals["before"], "eval_sampled"),
+              "after_sampled": _unprefix(latest, "eval_sampled")}
     if verbose:
-        print("evaluation after training: ", _fmt(report["after"]), flush=True)
-    atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
+        print("evaluation after training:  ", _fmt(report["after"]), flush=True)
+        print("  sampled actions:          ", _fmt(report["after_sampled"]), flush=True)
     joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.dt).joint_names
-    export_policy(run_dir / "export", make_inference_fn, params, test_env, config.robot, joint_names)
-    atomic_write_bytes(run_dir / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
-    return make_inference_fn, params, report
+    write_results(run_dir, core.make_policy, params, test_env, config.robot, joint_names, report)
+    return core.make_policy, params, report
 
 
-#: written last into a Brax PPO checkpoint directory: its presence marks a complete checkpoint
-CHECKPOINT_DONE_FILE = "ppo_network_config.json"
+#: testing aid: a process whose environment sets this to N kills itself with SIGKILL once it has
+#: logged the progress of step >= N and before that step's checkpoint is written (the worst
+#: moment for a resume: the log is ahead of the last checkpoint)
+KILL_VAR = "MJX_PATHTRACK_KILL_AT_STEP"
 
 
-def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
-    """The newest *complete* Brax checkpoint and the total env steps it stands for, or None.
+def _fault_injection(step: int) -> None:
+    at = os.environ.get(KILL_VAR)
+    if at is not None and step >= int(at):
+        import signal
 
-    Layout: ``checkpoints/<offset>/<step>/`` -- each (re)start of a run saves under the number of
-    steps done before it (Brax counts from 0 again after a restore). A directory that a kill left
-    half-written (no network config yet) is ignored."""
-    if not checkpoints.is_dir():
-        return None
-    found = [(int(o.name) + int(p.name), p) for o in checkpoints.iterdir() if o.is_dir() and o.name.isdigit()
-             for p in o.iterdir() if p.is_dir() and p.name.isdigit() and (p / CHECKPOINT_DONE_FILE).is_file()]
-    if not found:
-        return None
-    total, path = max(found, key=lambda x: x[0])
-    return path, total
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def write_results(run_dir: FsPath, make_policy, params, env, robot: str, joint_names, report: dict) -> None:
+    """``params.pkl``, ``export/`` and ``report.json`` of a finished run, written side by side
+    first and then moved into place (a kill leaves the previous set or the new one, each file
+    whole; the export directory is swapped as a whole)."""
+    import shutil
+
+    staging = run_dir / ".results.tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    atomic_write_bytes(staging / "params.pkl", pickle.dumps(params))
+    export_policy(staging / "export", make_policy, params, env, robot, joint_names)
+    atomic_write_bytes(staging / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
+    old_export = run_dir / ".export.old"
+    shutil.rmtree(old_export, ignore_errors=True)
+    if (run_dir / "export").exists():
+        os.replace(run_dir / "export", old_export)
+    os.replace(staging / "export", run_dir / "export")
+    os.replace(staging / "params.pkl", run_dir / "params.pkl")
+    os.replace(staging / "report.json", run_dir / "report.json")
+    shutil.rmtree(old_export, ignore_errors=True)
+    staging.rmdir()
+
+
+def _unprefix(metrics: dict[str, float], prefix: str) -> dict[str, float]:
+    return {k[len(prefix) + 1:]: v for k, v in metrics.items() if k.startswith(prefix + "/")}
 
 
 def json_safe(value):

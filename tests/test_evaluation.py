@@ -176,6 +176,16 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
         assert (out / f"episode0_{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_evaluate_cli_fails_on_a_missing_directory_before_importing_jax(tmp_path):
+    """evaluate.py checks its cheap arguments before the imports that take seconds."""
+    code = ("import sys, evaluate\n"
+            f"rc = evaluate.main([{str(tmp_path / 'nothing')!r}])\n"
+            "print('rc', rc, 'jax imported', 'jax' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert "rc 2 jax imported False" in result.stdout, result.stdout + result.stderr
+    assert "no run or export directory at" in result.stderr
+
+
 def test_export_dir_gives_the_same_policy(tiny_run, tmp_path):
     from brax.training.agents.ppo import networks as ppo_nets
 

@@ -84,3 +84,25 @@ def test_bad_exports_and_inputs_give_clear_errors(exported, tmp_path):
     (broken / "manifest.json").write_text(json.dumps({**manifest, "format_version": 99}))
     with pytest.raises(ExportError, match="version"):
         load_policy(broken)
+
+
+@pytest.mark.parametrize("content,message", [
+    ([], "not a manifest .*list"),
+    ("policy", "not a manifest .*str"),
+    ({"format_version": 1}, "key 'robot' is missing"),
+    ("drop:observation_size", "key 'observation_size' is missing, must be an integer"),
+    ("set:dt=fast", "key 'dt' is 'fast', must be a number"),
+])
+def test_manifest_that_is_json_but_not_a_manifest_is_an_export_error(exported, tmp_path, content, message):
+    out, _, _ = exported
+    manifest = json.loads((out / "manifest.json").read_text())
+    if content == "drop:observation_size":
+        content = {k: v for k, v in manifest.items() if k != "observation_size"}
+    elif content == "set:dt=fast":
+        content = {**manifest, "dt": "fast"}
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "manifest.json").write_text(json.dumps(content))
+    (bad / "policy.jaxexport").write_bytes((out / "policy.jaxexport").read_bytes())
+    with pytest.raises(ExportError, match=message):
+        load_policy(bad)

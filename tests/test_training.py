@@ -42,7 +42,7 @@ def tiny_run(tmp_path_factory):
 def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
     out, config, params, report = tiny_run
     assert TrainConfig.from_json((out / "config.json").read_text()) == config
-    assert set(report) == {"before", "after"}
+    assert set(report) == {"before", "after", "before_sampled", "after_sampled"}
     for summary in report.values():
         assert set(summary) >= {"return", "end_reached", "mean_deviation", "stop_time_s"}
         assert np.isfinite(summary["return"])
@@ -50,11 +50,14 @@ def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
     rows = list(csv.DictReader(open(out / "progress.csv")))
     assert list(rows[0])[:4] == ["step", "wall_s", "env_steps_per_s", "eta_s"] and len(rows) >= 2  # one per evaluation
     assert float(rows[0]["step"]) == 0 and float(rows[-1]["step"]) >= config.num_timesteps
-    # the rows show this package's evaluation: the first is the report's "before", the last its "after"
-    for row, summary in ((rows[0], report["before"]), (rows[-1], report["after"])):
-        assert float(row["eval/end_reached"]) == pytest.approx(summary["end_reached"])
-        assert float(row["eval/return"]) == pytest.approx(summary["return"])
-    assert "training/sps" in rows[-1] and float(rows[-1]["env_steps_per_s"]) > 0
+    # the rows show this package's evaluation, deterministic and sampled: the first is the
+    # report's "before", the last its "after"
+    for row, when in ((rows[0], "before"), (rows[-1], "after")):
+        for prefix, key in (("eval", when), ("eval_sampled", f"{when}_sampled")):
+            assert float(row[f"{prefix}/end_reached"]) == pytest.approx(report[key]["end_reached"])
+            assert float(row[f"{prefix}/return"]) == pytest.approx(report[key]["return"])
+    assert report["after"]["return"] != report["after_sampled"]["return"]  # two different policies
+    assert "training/total_loss" in rows[-1] and float(rows[-1]["env_steps_per_s"]) > 0
     assert any(p.name.startswith("events.out.tfevents") for p in (out / "tensorboard").iterdir())
     latest = latest_checkpoint(out / "checkpoints")
     assert latest is not None and latest[1] > 0
@@ -83,7 +86,7 @@ def test_resume_continues_from_the_last_checkpoint(tiny_run, tmp_path):
     train(bigger, run, resume=True, verbose=False)
     _, total = latest_checkpoint(run / "checkpoints")
     assert total > done
-    with pytest.raises(ValueError, match="differs"):
+    with pytest.raises(ValueError, match="differs .*seed"):
         train(TrainConfig(**{**TINY, "seed": 5}), run, resume=True, verbose=False)
 
 
@@ -148,3 +151,137 @@ def test_mean_clip_bounds_the_policy_mean():
     assert np.abs(means[None]).max() > 2.0
     assert np.abs(means[1.0]).max() < 1.0
     np.testing.assert_allclose(means[1.0], means[None] / (1.0 + np.abs(means[None])), rtol=1e-5, atol=1e-6)
+
+
+# --- exact resume, run-directory safety, clear errors (issue: safety and data) -----------------
+
+EXACT = {**TINY, "num_evals": 4}
+
+
+def test_resume_after_sigkill_ends_with_the_parameters_of_an_uninterrupted_run(tmp_path):
+    """A CLI run killed (SIGKILL) after logging step 2 of 3 but before that checkpoint, then
+    resumed with --resume: parameters bit for bit those of an uninterrupted run, progress.csv
+    without repeated steps, wall_s still increasing. (The child keeps this process's XLA flags
+    as its own, so both compile the same programs.)"""
+    from mjx_pathtrack.training import KILL_VAR
+
+    reference = tmp_path / "reference"
+    _, params, _ = train(TrainConfig(**EXACT), reference, verbose=False)
+    run = tmp_path / "killed"
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", ""))
+    env.pop("MJX_PATHTRACK_ADDED_XLA_FLAG", None)  # the flag counts as the user's: train.py keeps it
+    steps = sorted(int(r["step"]) for r in csv.DictReader(open(reference / "progress.csv")))
+    killed = subprocess.run([sys.executable, "train.py", *tiny_args(run), "--num-evals", "4"], cwd=REPO,
+                            env={**env, KILL_VAR: str(steps[2])}, capture_output=True, text=True, timeout=900)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    assert latest_checkpoint(run / "checkpoints")[1] == steps[1] and not (run / "params.pkl").exists()
+    assert max(int(r["step"]) for r in csv.DictReader(open(run / "progress.csv"))) == steps[2]  # log ahead
+    _, resumed, _ = train(TrainConfig(**EXACT), run, resume=True, verbose=False)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    rows = list(csv.DictReader(open(run / "progress.csv")))
+    assert [int(r["step"]) for r in rows] == steps
+    walls = [float(r["wall_s"]) for r in rows]
+    assert walls == sorted(walls)
+
+
+def test_a_run_directory_holding_a_run_is_refused_and_left_untouched(tiny_run, tmp_path):
+    from mjx_pathtrack.training import RunDirError
+
+    out, config, _, _ = tiny_run
+    run = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(out), str(run)], check=True)
+    before = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    with pytest.raises(RunDirError, match="holds a training run .*--resume .*--overwrite"):
+        train(config, run, verbose=False)
+    with pytest.raises(RunDirError, match="exclude each other"):
+        train(config, run, resume=True, overwrite=True, verbose=False)
+    # a failing option is refused before anything is written, even with --resume
+    from mjx_pathtrack.training import ConfigError
+
+    with pytest.raises(ConfigError, match="--batch-size"):
+        train(TrainConfig(**{**TINY, "num_envs": 15, "batch_size": 16}), run, resume=True, verbose=False)
+    after = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_overwrite_replaces_the_run_and_a_new_directory_is_removed_when_nothing_was_trained(tmp_path, monkeypatch):
+    from mjx_pathtrack import training
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "params.pkl").write_bytes(b"old")
+    (run / "notes.txt").write_text("mine")
+    training.clear_run_dir(run)
+    assert not (run / "params.pkl").exists() and (run / "notes.txt").read_text() == "mine"  # only our files
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(training, "_train", broken)
+    new = tmp_path / "new"
+    with pytest.raises(RuntimeError, match="boom"):
+        train(TrainConfig(**TINY), new, verbose=False)
+    assert not new.exists()
+
+
+def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tmp_path, monkeypatch):
+    from mjx_pathtrack import training
+
+    real = training._program
+
+    def poisoned(config, env):
+        program = real(config, env)
+        calls = []
+
+        def epoch(learner):
+            learner, summary = program.epoch(learner)
+            calls.append(1)
+            if len(calls) == 2:  # the second interval diverges
+                learner = learner._replace(params=jax.tree.map(lambda x: x * np.nan, learner.params))
+            return learner, summary
+
+        return program._replace(epoch=epoch)
+
+    monkeypatch.setattr(training, "_program", poisoned)
+    run = tmp_path / "run"
+    with pytest.raises(training.TrainingDiverged, match="diverged between steps .*last good checkpoint is .*ckpt"):
+        train(TrainConfig(**EXACT), run, verbose=False)
+    path, step = latest_checkpoint(run / "checkpoints")
+    state = training.load_checkpoint(path)
+    assert state["step"] == step and all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state["learner"].params))
+    assert not (run / "params.pkl").exists() and not (run / "export").exists()
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--num-envs", "-16"], "--num-envs: must be >= 1"),
+    (["--num-envs", "15", "--batch-size", "16"], "--batch-size: batch_size \\* num_minibatches .* multiple of --num-envs"),
+    (["--dt", "0"], "--dt: must be a finite number > 0"),
+    (["--alpha", "nan"], "--alpha: must be a finite number >= 0"),
+    (["--learning-rate", "inf"], "--learning-rate: must be a finite number > 0"),
+    (["--dataset", "spirals"], "--dataset: no dataset config .*datasets of iiwa: .*random"),
+    (["--executor", "mjx", "--dt", "0.11"], "--dt: 0.11 s must be a whole multiple of the physics step"),
+    (["--gae-lambda", "1.5"], "--gae-lambda: must be in"),
+])
+def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
+    import train as cli
+    from mjx_pathtrack.training import ConfigError, validate_config
+
+    _, config = cli.parse_args(argv)
+    with pytest.raises(ConfigError, match=message) as e:
+        validate_config(config)
+    assert "\n" not in str(e.value)
+
+
+def test_unknown_robot_and_bad_out_are_clear_cli_errors(tmp_path):
+    """The command line: rc 2 and one line on stderr, before any compiling (a few seconds)."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for argv, message in ((["--robot", "r2d2"], "--robot: unknown robot 'r2d2'"),
+                          (["--out", str(blocker)], f"--out {blocker}: is a file"),
+                          (["--out", str(blocker / "run")], "cannot create or write it")):
+        result = subprocess.run([sys.executable, "train.py", *argv], cwd=REPO, capture_output=True, text=True,
+                                timeout=300)
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert message in result.stderr and "Traceback" not in result.stderr
+        assert "Failed to import" not in result.stdout  # mujoco.mjx's Warp notices are silenced

@@ -38,6 +38,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from mjx_pathtrack import _quiet  # noqa: F401,I001  (before brax / mujoco.mjx: silences their Warp notices)
 from mujoco import mjx
 
 from mjx_pathtrack import limits as L

@@ -38,6 +38,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from mjx_pathtrack import _quiet  # noqa: F401,I001  (before brax / mujoco.mjx: silences their Warp notices)
 from brax.envs.base import Env, State
 
 from mjx_pathtrack import iiwa
