@@ -40,6 +40,12 @@ def parse_args(argv=None):
                              "training config's (0: the papers' rule); a deterministic policy can stall just short "
                              "of the end")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
+    parser.add_argument("--jerk-optimum", action="store_true",
+                        help="also the jerk-limited time-optimal duration of every episode (TOPP3 of copp-py, ~1 s "
+                             "per 7-joint path, solved on --workers processes, kept in --topp3-cache)")
+    parser.add_argument("--topp3-cache", default=None, metavar="FILE",
+                        help="JSON cache of TOPP3 durations (default ~/.cache/mjx_pathtrack/topp3.json; 'none': off)")
+    parser.add_argument("--workers", type=int, default=2, help="processes for the TOPP3 baseline")
     parser.add_argument("--out", default=None, help="output directory (default SOURCE/eval)")
     return parser.parse_args(argv)
 
@@ -73,8 +79,12 @@ def main(argv=None) -> int:
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
         return 2
+    from mjx_pathtrack import jerk_optimum
+
+    cache = None if args.topp3_cache == "none" else Path(args.topp3_cache or jerk_optimum.default_cache())
     summary, table, first = R.run_evaluation(env, source.policy, robot, args.episodes, args.seed, args.batch,
-                                             args.timing_decisions, not args.no_toppra)
+                                             args.timing_decisions, not args.no_toppra, args.jerk_optimum, cache,
+                                             max(args.workers, 1))
     episode = min(max(args.plot_episode, 0), len(first.s_start) - 1)
     meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
             "seed": args.seed, "full_paths": args.full_paths,

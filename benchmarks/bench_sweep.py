@@ -25,6 +25,7 @@ import time
 import mjx_pathtrack  # noqa: F401
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mjx_pathtrack import batched_ppo as B
 from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks
@@ -55,8 +56,9 @@ def timed_members(program: B.BatchedPPO, configs) -> tuple[float, float]:
     for _ in range(2):
         t0 = time.perf_counter()
         state = program.init(jnp.asarray(members.seed), weights)
-        for _ in range(program.epochs):
-            state, _ = program.epoch(state, weights)
+        for i in range(program.epochs):
+            state, _ = program.epoch(state, weights, np.float32(i / program.epochs),
+                                     np.float32((i + 1) / program.epochs))
         jax.block_until_ready(state.params)
         times.append(time.perf_counter() - t0)
     return times[0], times[1]

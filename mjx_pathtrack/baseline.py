@@ -83,3 +83,20 @@ def duration_ratio(policy_duration: np.ndarray, baseline: np.ndarray) -> np.ndar
     policy_duration, baseline = np.asarray(policy_duration, float), np.asarray(baseline, float)
     ok = np.isfinite(policy_duration) & np.isfinite(baseline) & (baseline > 0)
     return np.where(ok, policy_duration / np.where(ok, baseline, 1.0), np.nan)
+
+
+def jerk_limited_durations(paths: S.Path, s_start: np.ndarray, vel: np.ndarray, acc: np.ndarray, jerk: np.ndarray,
+                           cache=None, workers: int = 1) -> np.ndarray:
+    """Jerk-limited time-optimal durations ``[B]`` [s] (TOPP3 of ``copp-py``,
+    :mod:`mjx_pathtrack.jerk_optimum`) of the same episodes as :func:`baseline_durations`, with
+    the path joints' velocity, acceleration and jerk limits ``[m]``; ``cache``: a JSON file of
+    durations already solved (~1 s per 7-joint path otherwise), ``workers``: processes."""
+    import jax
+
+    from mjx_pathtrack import jerk_optimum
+
+    problems = []
+    for b in range(len(s_start)):
+        path = jax.tree.map(lambda x: x[b], paths)
+        problems.append((episode_knots(path, float(s_start[b])), vel, acc, jerk))
+    return jerk_optimum.durations(problems, cache=cache, workers=workers)

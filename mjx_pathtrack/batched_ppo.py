@@ -53,7 +53,8 @@ def shared_key(config: TrainConfig) -> TrainConfig:
 @dataclasses.dataclass
 class BatchedPPO:
     """The compiled pieces for one shared config: ``init(seeds [K], weights [K, 3]) -> state [K]``
-    and ``epoch(state, weights) -> (state, metrics [K])``, plus ``make_policy`` (Brax's
+    and ``epoch(state, weights, start, end) -> (state, metrics [K])`` (``start``, ``end``: the
+    fraction of the budget the epoch covers), plus ``make_policy`` (Brax's
     inference function factory) and the number of env steps per epoch per member."""
 
     config: TrainConfig
@@ -77,10 +78,11 @@ def build(config: TrainConfig, env: PathTrackingEnv | None = None) -> BatchedPPO
     def init(seed, weights):
         return core.init(seed, weights, c.num_envs)
 
-    def epoch(state, weights):
-        return ppo.run_iterations(core, weights, state, iterations)
+    def epoch(state, weights, start, end):  # [start, end): the fraction of the budget it covers
+        return ppo.run_iterations(core, weights, state, iterations, start, end)
 
-    return BatchedPPO(c, env, jax.jit(jax.vmap(init)), jax.jit(jax.vmap(epoch), donate_argnums=(0,)), core.make_policy,
+    return BatchedPPO(c, env, jax.jit(jax.vmap(init)),
+                      jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, None)), donate_argnums=(0,)), core.make_policy,
                       iterations * core.steps_per_iteration, epochs)
 
 
@@ -106,7 +108,7 @@ def train_members(configs: Sequence[TrainConfig], program: BatchedPPO | None = N
     t0 = time.monotonic()
     state = program.init(jnp.asarray(members.seed), weights)
     for i in range(program.epochs):
-        state, metrics = program.epoch(state, weights)
+        state, metrics = program.epoch(state, weights, np.float32(i / program.epochs), np.float32((i + 1) / program.epochs))
         if progress is not None:
             metrics = jax.tree.map(np.asarray, metrics)
             progress((i + 1) * program.steps_per_epoch,

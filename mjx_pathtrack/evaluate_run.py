@@ -170,10 +170,13 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
 
 
 def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes: int | None = None, seed: int = 0,
-                   batch: int = 256, timing_decisions: int = 200, topp: bool = True) -> tuple[dict, dict, E.Rollout]:
+                   batch: int = 256, timing_decisions: int = 200, topp: bool = True, topp3: bool = False,
+                   topp3_cache=None, workers: int = 2) -> tuple[dict, dict, E.Rollout]:
     """Evaluate: ``episodes`` (default: one per path) on paths ``i mod n_paths`` in batches of
-    ``batch`` (the last padded, so one compile), sub-paths from ``PRNGKey(seed)``. Returns
-    ``(summary, per-episode table, rollout of the first batch)``."""
+    ``batch`` (the last padded, so one compile), sub-paths from ``PRNGKey(seed)``. ``topp``: the
+    TOPP-RA baseline; ``topp3``: also the jerk-limited optimum (TOPP3, ~1 s per path on
+    ``workers`` processes, reused from the JSON file ``topp3_cache``). Returns ``(summary,
+    per-episode table, rollout of the first batch)``."""
     n = env.n_paths if episodes is None else int(episodes)
     if n < 1:
         raise EvaluationError(f"--episodes must be >= 1, got {n}")
@@ -193,6 +196,14 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
             table["toppra_duration_s"] = baseline.baseline_durations(paths, ro.s_start[:len(chunk)],
                                                                      np.asarray(lim.vel)[pj], np.asarray(lim.acc)[pj])
             table["ratio_to_toppra"] = baseline.duration_ratio(table["stop_time_s"], table["toppra_duration_s"])
+        if topp3:
+            pj = np.asarray(env.path_joints)
+            lim = env.limits
+            paths = jax.tree.map(lambda x: x[:len(chunk)], ro.paths)
+            table["topp3_duration_s"] = baseline.jerk_limited_durations(
+                paths, ro.s_start[:len(chunk)], np.asarray(lim.vel)[pj], np.asarray(lim.acc)[pj],
+                np.asarray(lim.jerk)[pj], cache=topp3_cache, workers=workers)
+            table["ratio_to_topp3"] = baseline.duration_ratio(table["stop_time_s"], table["topp3_duration_s"])
         tables.append(table)
         first = ro if first is None else first
     table = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
@@ -204,6 +215,14 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         summary["toppra_duration_s_mean"] = float(np.nanmean(table["toppra_duration_s"]))
         summary["ratio_to_toppra_mean"] = float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan")
         summary["ratio_to_toppra_max"] = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
+    if topp3:
+        ratio = table["ratio_to_topp3"]
+        summary["topp3_duration_s_mean"] = float(np.nanmean(table["topp3_duration_s"]))
+        summary["topp3_failures"] = int(np.sum(~np.isfinite(table["topp3_duration_s"])))
+        summary["ratio_to_topp3_mean"] = float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan")
+        summary["ratio_to_topp3_max"] = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
+        if topp:
+            summary["topp3_over_toppra_mean"] = float(np.nanmean(table["topp3_duration_s"] / table["toppra_duration_s"]))
     if timing_decisions > 0:
         times = E.decision_times(env, policy, first, timing_decisions, seed)
         summary["computation_time"] = {"decisions": int(len(times)), "dt_s": float(env.config.dt),
@@ -238,6 +257,11 @@ def format_report(summary: dict, title: str, robot_name: str) -> str:
         lines += ["", "Table VI  TOPP-RA duration [s] mean {:7.3f}   ratio policy/TOPP-RA mean {:6.3f}  max {:6.3f}{}".format(
             g("toppra_duration_s_mean"), g("ratio_to_toppra_mean"), g("ratio_to_toppra_max"),
             f"   (paper: {paper})" if paper else "")]
+    if "ratio_to_topp3_mean" in summary:
+        lines += ["          TOPP3 (jerk-limited optimum) [s] mean {:7.3f}   ratio policy/TOPP3 mean {:6.3f}  max {:6.3f}"
+                  "   TOPP3/TOPP-RA mean {:6.3f}   ({} failed)".format(
+                      g("topp3_duration_s_mean"), g("ratio_to_topp3_mean"), g("ratio_to_topp3_max"),
+                      g("topp3_over_toppra_mean"), summary.get("topp3_failures", 0))]
     if "computation_time" in summary:
         c = summary["computation_time"]
         lines += ["", "Table IX  computation time / dt (single env, jitted, {} decisions): mean {:.5f}  max {:.5f}  "

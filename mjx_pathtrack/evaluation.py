@@ -58,6 +58,14 @@ def evaluate(env: PathTrackingEnv, policy: Policy, rng: Array, n_episodes: int,
     return metrics
 
 
+def episode_references(env: PathTrackingEnv, rng: Array, n_episodes: int):
+    """``(paths [B], s_start [B])``: the reference (truncated to the sub-path) and start arc
+    position [rad] of the episodes :func:`evaluate` runs for ``rng`` (for their baselines)."""
+    reset_keys = jax.random.split(rng, n_episodes + 1)
+    track = jax.vmap(env.initial_state)(reset_keys[1:])
+    return jax.vmap(env.path)(track.path_index, track.n_knots), np.asarray(track.s_start)
+
+
 def _run(env: PathTrackingEnv, policy: Policy, state, keys: Array, record: bool):
     """Scan the batch ``state`` over ``len(keys)`` steps. Returns ``(EpisodeMetrics, done [B],
     records)``; ``records`` (``record=True``) is a dict of time-major arrays (see :class:`Rollout`)."""
@@ -124,11 +132,17 @@ def limit_ratios(lim: L.JointLimits, p: Array, v: Array, a0: Array, a1: Array, d
     return jnp.stack([pos, vel, ext.a_abs / lim.acc, ext.jerk_abs / lim.jerk], axis=-2)
 
 
-def summarize(m: EpisodeMetrics) -> dict[str, float]:
+def summarize(m: EpisodeMetrics, baseline: np.ndarray | None = None) -> dict[str, float]:
     """Means over episodes: return, end-reached rate, success rate, mean stop time [s] (of the
-    episodes that stopped), mean/max joint deviation [rad], deviation terminations."""
+    episodes that stopped), mean/max joint deviation [rad], deviation terminations; with the
+    baseline durations ``[B]`` [s] of the same episodes (TOPP-RA), also the mean ratio of the
+    stop time to it (``ratio_to_toppra``, over the episodes that stopped)."""
     m = jax.tree.map(np.asarray, m)
     stopped = ~np.isnan(m.stop_time)
+    extra = {}
+    if baseline is not None:
+        ok = stopped & np.isfinite(baseline) & (baseline > 0)
+        extra["ratio_to_toppra"] = float(np.mean(m.stop_time[ok] / baseline[ok])) if ok.any() else float("nan")
     return {
         "return": float(m.episode_return.mean()),
         "end_reached": float((~np.isnan(m.end_time)).mean()),
@@ -139,6 +153,7 @@ def summarize(m: EpisodeMetrics) -> dict[str, float]:
         "terminated_deviation": float(m.terminated_deviation.mean()),
         "progress": float(m.progress.mean()),
         "task_failed": float(m.task_failed.mean()),
+        **extra,
     }
 
 

@@ -66,6 +66,24 @@ class Learner(NamedTuple):
     key: jax.Array
 
 
+def noise_std(config, fraction):
+    """Policy std [action units] at ``fraction`` in [0, 1] of the training budget under the
+    config's schedule (geometric from ``init_noise_std`` to ``final_noise_std``); None if the
+    std is learned. ``fraction`` may be traced."""
+    if config.final_noise_std is None:
+        return None
+    lo, hi = float(np.log(config.init_noise_std)), float(np.log(config.final_noise_std))
+    return jnp.exp(lo + (hi - lo) * jnp.clip(fraction, 0.0, 1.0))
+
+
+def with_noise_std(policy_params, std):
+    """Policy parameters whose (state-independent) std is ``std`` (scalar or ``[n]``)."""
+    inner = dict(policy_params["params"])
+    log_value = inner["std_logparam"]["log_value"]
+    inner["std_logparam"] = {"log_value": jnp.broadcast_to(jnp.log(std), log_value.shape).astype(log_value.dtype)}
+    return {**policy_params, "params": inner}
+
+
 def with_reward_weights(env, alpha, beta, action):
     """A shallow copy of ``env`` whose reward weights are ``alpha`` (R_l), ``beta`` (both R_d
     terms) and ``action`` (R_action); the values may be JAX tracers (scalars)."""
@@ -81,9 +99,10 @@ class Core:
     """The pure pieces of one PPO configuration on one environment.
 
     ``init(seed, weights, n_envs, device) -> Learner`` (``device``: index of this device's share,
-    folded into the environment and learner keys); ``iteration(weights, learner) -> (learner,
-    metrics)`` one training iteration; ``weights [3]``: the reward weights (alpha, beta,
-    action), possibly traced. ``make_policy``: Brax's inference-function factory;
+    folded into the environment and learner keys); ``iteration(weights, learner, std=None) ->
+    (learner, metrics)`` one training iteration; ``weights [3]``: the reward weights (alpha,
+    beta, action), possibly traced; ``std``: the policy's std for this iteration when it is set
+    by a schedule (:func:`noise_std`) instead of learned. ``make_policy``: Brax's inference-function factory;
     ``steps_per_iteration``: environment steps of one iteration over all devices."""
 
     config: Any
@@ -143,9 +162,13 @@ def build(config, env, axis_name: str | None = None) -> Core:
         obs_spec = jax.ShapeDtypeStruct((env.observation_size,), jnp.float32)
         return Learner(optimizer.init(params), params, running_statistics.init_state(obs_spec), env_state, local_key)
 
-    def iteration(weights, learner: Learner):
+    def scheduled(params, std):
+        return params if std is None else params.replace(policy=with_noise_std(params.policy, std))
+
+    def iteration(weights, learner: Learner, std=None):
         wenv = member_env(weights)
         key_sgd, key_unroll, new_key = jax.random.split(learner.key, 3)
+        learner = learner._replace(params=scheduled(learner.params, std))
         policy = make_policy((learner.normalizer_params, learner.params.policy, learner.params.value))
 
         def unroll(state_key, _):
@@ -181,6 +204,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
 
         (opt_state, params, _), metrics = jax.lax.scan(sgd, (learner.optimizer_state, learner.params, key_sgd), (),
                                                        length=c.num_updates_per_batch)
+        params = scheduled(params, std)  # a scheduled std is not learned: drop its update
         metrics = jax.tree.map(jnp.mean, metrics)
         done = data.extras["state_extras"]["episode_done"]
         ep = data.extras["state_extras"]["episode_metrics"]
@@ -194,11 +218,16 @@ def build(config, env, axis_name: str | None = None) -> Core:
     return Core(c, env, network, make_policy, init, iteration, c.batch_size * c.unroll_length * c.num_minibatches)
 
 
-def run_iterations(core: Core, weights, learner: Learner, iterations: int):
-    """``iterations`` training iterations in one scan. Returns ``(learner, summary)``: the mean of
+def run_iterations(core: Core, weights, learner: Learner, iterations: int, start=0.0, end=1.0):
+    """``iterations`` training iterations in one scan, covering the fraction ``[start, end)`` of
+    the training budget (for a scheduled noise std). Returns ``(learner, summary)``: the mean of
     the losses and of the reward per step, the number of finished training episodes and their
     mean return (``episode_return``)."""
-    learner, metrics = jax.lax.scan(lambda l, _: core.iteration(weights, l), learner, (), length=iterations)
+    def body(learner, i):
+        std = noise_std(core.config, start + (end - start) * i / iterations)
+        return core.iteration(weights, learner, std)
+
+    learner, metrics = jax.lax.scan(body, learner, jnp.arange(iterations, dtype=jnp.float32))
     finished = jnp.sum(metrics["episodes"])
     summary = {k: jnp.mean(v) for k, v in metrics.items() if k not in ("episodes", "episode_return_sum")}
     summary["episodes"] = finished

@@ -92,6 +92,10 @@ class TrainConfig:
     policy_layers: tuple[int, ...] = (256, 128)
     value_layers: tuple[int, ...] = (256, 128)
     init_noise_std: float = 0.5
+    #: None: the policy's log-std is learned (Brax); a number: the std is not learned but set by a
+    #: schedule, geometric from ``init_noise_std`` at the start to this value at the end of
+    #: training, so that the sampled policy PPO optimises converges to the deterministic one
+    final_noise_std: float | None = None
     mean_init_scale: float = 0.01
     #: bound of the policy mean, ``mean_clip * x / (1 + |x|)`` (Brax's ``mean_clip_scale``), like the
     #: papers' tanh mean head (REFERENCE §6.1); None: an unbounded mean
@@ -222,7 +226,8 @@ class Progress:
             for prefix, label in (("eval", "deterministic"), ("eval_sampled", "sampled")):
                 if f"{prefix}/end_reached" in row:
                     line += (f"  {label}: end {100 * row[f'{prefix}/end_reached']:5.1f} %"
-                             f" dev {row[f'{prefix}/mean_deviation']:.3f}")
+                             f" dev {row[f'{prefix}/mean_deviation']:.3f}"
+                             + (f" x{row[f'{prefix}/ratio_to_toppra']:.2f}" if f"{prefix}/ratio_to_toppra" in row else ""))
             print(line, flush=True)
 
 
@@ -294,6 +299,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         value = getattr(c, name)
         if not (np.isfinite(value) and lo < value <= hi):
             fail(name, f"must be in ({lo:g}, {hi:g}], got {value}")
+    if c.final_noise_std is not None and not (np.isfinite(c.final_noise_std) and c.final_noise_std > 0):
+        fail("final_noise_std", f"must be a finite number > 0 (or unset), got {c.final_noise_std}")
     if c.mean_clip is not None and not (np.isfinite(c.mean_clip) and c.mean_clip > 0):
         fail("mean_clip", f"must be a finite number > 0 (or unset), got {c.mean_clip}")
     for name in ("num_envs", "num_timesteps", "unroll_length", "batch_size", "num_minibatches",
@@ -411,7 +418,7 @@ def load_checkpoint(path: FsPath) -> dict:
 class _Program(NamedTuple):
     core: Any
     init: Any  # (seed) -> Learner (with a leading device axis when pmapped)
-    epoch: Any  # Learner -> (Learner, summary)
+    epoch: Any  # (Learner, start, end) -> (Learner, summary); start, end: fractions of the budget
     devices: int
     iterations: int  # training iterations per evaluation interval
     epochs: int
@@ -431,8 +438,8 @@ def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
     iterations = max(int(np.ceil(c.num_timesteps / (epochs * core.steps_per_iteration))), 1)
     envs_per_device = c.num_envs // (devices * processes)
 
-    def epoch(learner):
-        return ppo.run_iterations(core, weights, learner, iterations)
+    def epoch(learner, start, end):  # [start, end): the fraction of the budget it covers
+        return ppo.run_iterations(core, weights, learner, iterations, start, end)
 
     if devices == 1:
         def init(seed):
@@ -446,7 +453,19 @@ def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
         return jax.pmap(lambda d: core.init(seed, weights, envs_per_device, d), axis_name=axis)(
             first + jnp.arange(devices))
 
-    return _Program(core, init, jax.pmap(epoch, axis_name=axis, donate_argnums=(0,)), devices, iterations, epochs)
+    return _Program(core, init, jax.pmap(epoch, axis_name=axis, in_axes=(0, None, None), donate_argnums=(0,)), devices,
+                    iterations, epochs)
+
+
+def _eval_baseline(env: PathTrackingEnv, key, episodes: int) -> np.ndarray:
+    """TOPP-RA durations of the evaluation episodes (the same every evaluation: a fixed key), so
+    that progress.csv shows the policy/TOPP-RA ratio."""
+    from mjx_pathtrack import baseline
+    from mjx_pathtrack.evaluation import episode_references
+
+    paths, s_start = episode_references(env, key, episodes)
+    pj = np.asarray(env.path_joints)
+    return baseline.baseline_durations(paths, s_start, np.asarray(env.limits.vel)[pj], np.asarray(env.limits.acc)[pj])
 
 
 def _host(tree):
@@ -510,12 +529,13 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     total = program.epochs * steps_per_epoch
     evaluator = make_evaluator(test_env, core.make_policy, config.eval_episodes, deterministic=None)
     eval_key = jax.random.PRNGKey(config.seed + 1)
+    toppra = _eval_baseline(test_env, eval_key, config.eval_episodes)
 
     def evaluation(learner) -> dict[str, float]:
         params = _brax_params(learner, program.devices)
         out = {}
         for sampled, prefix in ((False, "eval"), (True, "eval_sampled")):
-            for k, v in summarize(evaluator(params, eval_key, sampled)).items():
+            for k, v in summarize(evaluator(params, eval_key, sampled), toppra).items():
                 out[f"{prefix}/{k}"] = v
         return out
 
@@ -546,7 +566,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     # edited to a larger num_timesteps goes on with intervals of the new size)
     step = start_step
     while step < total:
-        learner, summary = program.epoch(learner)
+        learner, summary = program.epoch(learner, np.float32(step / total), np.float32((step + steps_per_epoch) / total))
         summary = _host(summary)
         if program.devices > 1:
             summary = jax.tree.map(lambda x: x[0], summary)

@@ -153,6 +153,29 @@ def test_mean_clip_bounds_the_policy_mean():
     np.testing.assert_allclose(means[1.0], means[None] / (1.0 + np.abs(means[None])), rtol=1e-5, atol=1e-6)
 
 
+def test_noise_std_schedule_is_geometric_from_the_initial_to_the_final_std():
+    from mjx_pathtrack import ppo
+
+    config = TrainConfig(init_noise_std=0.5, final_noise_std=0.05)
+    stds = [float(ppo.noise_std(config, f)) for f in (0.0, 0.5, 1.0, 1.5)]
+    np.testing.assert_allclose(stds, [0.5, np.sqrt(0.5 * 0.05), 0.05, 0.05], rtol=1e-5)
+    assert ppo.noise_std(TrainConfig(), 0.3) is None  # learned std: no schedule
+
+
+def test_a_scheduled_std_is_not_learned_and_ends_at_the_schedule(tmp_path):
+    """The std the run ends with is the schedule's value at the start of the last iteration (not
+    what Adam would have made of it), in the exported policy's parameters too."""
+    from mjx_pathtrack import ppo
+
+    config = TrainConfig(**{**TINY, "num_timesteps": 1280, "final_noise_std": 0.1})
+    _, params, _ = train(config, tmp_path / "run", verbose=False)
+    log_std = np.asarray(params[1]["params"]["std_logparam"]["log_value"])
+    iterations = 1280 // (8 * 5 * 2)
+    expected = float(ppo.noise_std(config, (iterations - 1) / iterations))
+    np.testing.assert_allclose(np.exp(log_std), expected, rtol=1e-5)
+    assert expected < 0.5
+
+
 # --- exact resume, run-directory safety, clear errors (issue: safety and data) -----------------
 
 EXACT = {**TINY, "num_evals": 4}
@@ -234,8 +257,8 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
         program = real(config, env)
         calls = []
 
-        def epoch(learner):
-            learner, summary = program.epoch(learner)
+        def epoch(learner, start, end):
+            learner, summary = program.epoch(learner, start, end)
             calls.append(1)
             if len(calls) == 2:  # the second interval diverges
                 learner = learner._replace(params=jax.tree.map(lambda x: x * np.nan, learner.params))
@@ -262,6 +285,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     (["--dataset", "spirals"], "--dataset: no dataset config .*datasets of iiwa: .*random"),
     (["--executor", "mjx", "--dt", "0.11"], "--dt: 0.11 s must be a whole multiple of the physics step"),
     (["--gae-lambda", "1.5"], "--gae-lambda: must be in"),
+    (["--final-noise-std", "0"], "--final-noise-std: must be a finite number > 0"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
     import train as cli
