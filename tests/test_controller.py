@@ -6,6 +6,8 @@ import pytest
 import jax
 import jax.numpy as jnp
 
+from pathlib import Path
+
 from mjx_pathtrack import iiwa
 from mjx_pathtrack import limits as L
 from mjx_pathtrack import spline as S
@@ -16,6 +18,7 @@ DT = 0.1
 N_NEXT = 4
 MAX_DIS = 0.5
 LIM = iiwa.joint_limits(DT)
+REPO = Path(__file__).resolve().parents[1]
 N = 7
 REL = 1e-6
 
@@ -413,3 +416,48 @@ def test_exported_policy_drives_the_tracker_within_limits(exported):
     assert audit.worst <= REL
     with pytest.raises(ValueError, match="manifest"):
         OnlineTracker(exported, np.zeros(N), controller_dt=0.01, dt=DT)
+
+
+def readme_deploy_example() -> str:
+    """The README's deployment snippet (the python block after **Deploy.**), verbatim."""
+    text = (REPO / "README.md").read_text()
+    block = text[text.index("**Deploy.**"):]
+    return block[block.index("```python\n") + len("```python\n"):block.index("```", block.index("```python\n") + 3)]
+
+
+def test_readme_deploy_example_runs_as_written_on_the_longest_committed_test_path(tmp_path):
+    """The README example with an (untrained) iiwa export in place of ``runs/iiwa_random/export``
+    on the committed iiwa random test path with the most knots (default ``max_knots``), then a
+    changed path ahead; every setpoint within the limits."""
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    from mjx_pathtrack import datasets
+    from mjx_pathtrack.export import export_policy
+    from mjx_pathtrack.training import TrainConfig, make_env
+
+    env = make_env(TrainConfig(), "test")
+    nets = ppo_networks.make_ppo_networks(env.observation_size, env.action_size,
+                                          preprocess_observations_fn=running_statistics.normalize,
+                                          policy_hidden_layer_sizes=(16,), value_hidden_layer_sizes=(8,))
+    normalizer = running_statistics.init_state(specs.Array((env.observation_size,), jnp.dtype("float32")))
+    params = (normalizer, nets.policy_network.init(jax.random.PRNGKey(0)))
+    export_policy(tmp_path / "export", ppo_networks.make_inference_fn(nets), params, env, "iiwa", iiwa.JOINT_NAMES)
+
+    code = readme_deploy_example()
+    assert code.count('"runs/iiwa_random/export"') == 1
+    knots = max(datasets.load_split("iiwa", "random", "test"), key=len)
+    assert len(knots) > 64  # longer than the tracker's old default limit
+    namespace = {"p0": knots[0], "knots": knots, "new_knots": knots[len(knots) // 2:][::-1]}
+    exec(code.replace('"runs/iiwa_random/export"', repr(str(tmp_path / "export"))), namespace)
+    out = namespace["out"]
+    assert out.position.shape == (100, 7) and np.all(np.isfinite(out.position))
+    tracker = namespace["tracker"]
+    for _ in range(5):  # follows the changed path within every limit
+        out = tracker.step()
+        lim = tracker.limits
+        for value, bound in ((out.position, None), (out.velocity, lim.vel), (out.acceleration, lim.acc)):
+            if bound is None:
+                assert np.all(value >= np.asarray(lim.pos_min) - 1e-6) and np.all(value <= np.asarray(lim.pos_max) + 1e-6)
+            else:
+                assert np.all(np.abs(value) <= np.asarray(bound) * (1 + 1e-5))
