@@ -78,12 +78,17 @@ def build(config: TrainConfig, env: PathTrackingEnv | None = None) -> BatchedPPO
     def init(seed, weights):
         return core.init(seed, weights, c.num_envs)
 
-    def epoch(state, weights, start, end):  # [start, end): the fraction of the budget it covers
-        return ppo.run_iterations(core, weights, state, iterations, start, end)
+    def step(state, weights, fraction):
+        return ppo.scheduled_iteration(core, weights, state, fraction)
 
-    return BatchedPPO(c, env, jax.jit(jax.vmap(init)),
-                      jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, None)), donate_argnums=(0,)), core.make_policy,
-                      iterations * core.steps_per_iteration, epochs)
+    step = jax.jit(jax.vmap(step, in_axes=(0, 0, None)), donate_argnums=(0,))
+    run = ppo.make_epoch(step, iterations)
+
+    def epoch(state, weights, start, end):  # [start, end): the fraction of the budget it covers
+        return run(state, start, end, weights)
+
+    return BatchedPPO(c, env, jax.jit(jax.vmap(init)), epoch, core.make_policy, iterations * core.steps_per_iteration,
+                      epochs)
 
 
 def member_weights(members: Members) -> jax.Array:

@@ -438,14 +438,15 @@ def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
     iterations = max(int(np.ceil(c.num_timesteps / (epochs * core.steps_per_iteration))), 1)
     envs_per_device = c.num_envs // (devices * processes)
 
-    def epoch(learner, start, end):  # [start, end): the fraction of the budget it covers
-        return ppo.run_iterations(core, weights, learner, iterations, start, end)
+    def step(learner, fraction):
+        return ppo.scheduled_iteration(core, weights, learner, fraction)
 
     if devices == 1:
         def init(seed):
             return jax.jit(lambda: core.init(seed, weights, envs_per_device, jax.process_index()))()
 
-        return _Program(core, init, jax.jit(epoch, donate_argnums=(0,)), 1, iterations, epochs)
+        return _Program(core, init, ppo.make_epoch(jax.jit(step, donate_argnums=(0,)), iterations), 1, iterations,
+                        epochs)
 
     first = jax.process_index() * devices
 
@@ -453,8 +454,8 @@ def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
         return jax.pmap(lambda d: core.init(seed, weights, envs_per_device, d), axis_name=axis)(
             first + jnp.arange(devices))
 
-    return _Program(core, init, jax.pmap(epoch, axis_name=axis, in_axes=(0, None, None), donate_argnums=(0,)), devices,
-                    iterations, epochs)
+    pmapped = jax.pmap(step, axis_name=axis, in_axes=(0, None), donate_argnums=(0,))
+    return _Program(core, init, ppo.make_epoch(pmapped, iterations), devices, iterations, epochs)
 
 
 def _eval_baseline(env: PathTrackingEnv, key, episodes: int) -> np.ndarray:
