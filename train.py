@@ -1,6 +1,7 @@
 """Train a path-tracking policy with Brax PPO on batched environments.
 
     python train.py                      # iiwa, random paths, CPU-sized default run
+    python train.py --preset paper       # the same recipe at paper quality (about an hour on 2 cores)
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
     python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
@@ -33,13 +34,25 @@ def task_presets() -> dict[str, dict]:
     return {"ball_on_plate": {**ball_on_plate.PRESET, "out": "runs/ball_on_plate"}}
 
 
+def _optional(kind):
+    """argparse type of an optional option: 'none' is None, anything else ``kind(text)``."""
+    def parse(text: str):
+        return None if text.lower() == "none" else kind(text)
+
+    parse.__name__ = kind.__name__  # argparse names the type in its error messages
+    return parse
+
+
 def parse_args(argv=None):
     from mjx_pathtrack.env import KNOTS_FRAMES
-    from mjx_pathtrack.training import EXECUTORS, TASKS, TrainConfig, preset
+    from mjx_pathtrack.training import EXECUTORS, RECIPES, TASKS, TrainConfig, preset, recipe
 
     defaults = TrainConfig()
     choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
+                        help="a training recipe's settings as the defaults of the other flags "
+                             "(mjx_pathtrack.training.RECIPES; paper: paper-quality budget, ~1 h on 2 CPU cores)")
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default=None,
@@ -67,8 +80,9 @@ def parse_args(argv=None):
         flag = "--" + field.name.replace("_", "-")
         if isinstance(value, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=list(value))
-        elif value is None:  # optional: a number (``float | None``) or a path
-            parser.add_argument(flag, type=float if "float" in str(field.type) else str, default=None)
+        elif value is None or "None" in str(field.type):  # optional: a number (``float | None``) or a path
+            parser.add_argument(flag, type=_optional(float if "float" in str(field.type) else str), default=value,
+                                help="'none' to unset" if value is not None else None)
         else:
             parser.add_argument(flag, type=type(value), default=value, choices=choices.get(field.name))
     known, _ = parser.parse_known_args(argv)
@@ -79,12 +93,14 @@ def parse_args(argv=None):
     presets = task_presets()
     if known.task in presets:
         parser.set_defaults(**presets[known.task])
+    parser.set_defaults(**recipe(known.preset))
     args = parser.parse_args(argv)
     if args.no_ball_reward:
         args.ball_reward = 0.0
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
     if args.out is None and not args.sweep:  # (a sweep has its own default output directory)
         args.out = f"runs/balance_{args.legs}" if args.task == "balance" else f"runs/{args.robot}_{args.dataset}"
+        args.out += f"_{args.preset}" if args.preset else ""
     values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
     return args, TrainConfig(**values)
 

@@ -130,8 +130,26 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert TrainConfig().knots_frame == "relative"
     # a run directory from before the option existed observed absolute knots
     assert TrainConfig.from_json('{"robot": "iiwa"}').knots_frame == "absolute"
+    assert TrainConfig.from_json('{"robot": "iiwa"}').final_noise_std is None  # ... and learned their std
     with pytest.raises(SystemExit):
         cli.parse_args(["--knots-frame", "polar"])
+
+
+def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
+    sys.path.insert(0, str(REPO))
+    import train as cli
+    from mjx_pathtrack.training import RECIPES
+
+    args, cfg = cli.parse_args(["--preset", "paper"])
+    assert args.out == "runs/iiwa_random_paper"
+    assert cfg == TrainConfig(**RECIPES["paper"]) and cfg.num_timesteps > TrainConfig().num_timesteps
+    args, cfg = cli.parse_args(["--preset", "paper", "--robot", "armar6", "--num-timesteps", "1000"])
+    assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.final_noise_std) == ("armar6", 1.0, 1000, RECIPES["paper"]["final_noise_std"])
+    assert args.out == "runs/armar6_random_paper"
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--preset", "fastest"])
+    assert cli.parse_args(["--final-noise-std", "none"])[1].final_noise_std is None  # learned std (Brax's way)
+    assert cli.parse_args(["--mean-clip", "1"])[1].mean_clip == 1.0
 
 
 def test_mean_clip_bounds_the_policy_mean():
