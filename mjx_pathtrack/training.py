@@ -153,9 +153,9 @@ PRESETS = {
 
 
 #: training recipes at larger budgets (``train.py --preset NAME``), flag defaults applied on top
-#: of the robot/task presets (explicit flags still win); any robot or dataset (docs/training.md)
+#: of the robot/task presets (explicit flags still win); any robot or dataset (README "Learning recipe")
 RECIPES = {
-    # paper quality on the iiwa random paths within an hour on 2 CPU cores
+    # meant for paper quality on the iiwa random paths within an hour on 2 CPU cores (not yet measured)
     "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05),
 }
 

@@ -34,7 +34,7 @@ def test_traced_reward_weights_reach_every_reward_term_per_member():
     for term, col in (("distance", 0), ("max_deviation", 1), ("mean_deviation", 1), ("action", 2)):
         assert float(unit[term]) > 0
         np.testing.assert_allclose(out[term], w[:, col] * float(unit[term]), rtol=1e-6, err_msg=term)
-    assert env.config.reward.alpha == 2.0  # the original environment is untouched
+    assert env.config.reward.alpha == TrainConfig().alpha  # the original environment is untouched
 
 
 def test_members_and_shared_key():

@@ -177,7 +177,7 @@ def test_noise_std_schedule_is_geometric_from_the_initial_to_the_final_std():
     config = TrainConfig(init_noise_std=0.5, final_noise_std=0.05)
     stds = [float(ppo.noise_std(config, f)) for f in (0.0, 0.5, 1.0, 1.5)]
     np.testing.assert_allclose(stds, [0.5, np.sqrt(0.5 * 0.05), 0.05, 0.05], rtol=1e-5)
-    assert ppo.noise_std(TrainConfig(), 0.3) is None  # learned std: no schedule
+    assert ppo.noise_std(TrainConfig(final_noise_std=None), 0.3) is None  # learned std: no schedule
 
 
 def test_a_scheduled_std_is_not_learned_and_ends_at_the_schedule(tmp_path):
