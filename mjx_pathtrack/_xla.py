@@ -22,7 +22,7 @@ Opt out with ``MJX_PATHTRACK_NO_XLA_FLAGS=1``.
 The flag only pays off for MJX physics. Everything else (the kinematic executor's environment
 step together with Brax's PPO updates, whose elementwise and reduction fusions the old emitters
 compile worse) trains faster with XLA's default emitters: measured 34,277 against 30,095 PPO
-env-steps/s at 2048 iiwa environments (``benchmarks/bench_train.py``, README). A process that
+env-steps/s at 2048 iiwa environments (``benchmarks/bench_train.py``, docs/results.md "CPU XLA flags"). A process that
 knows before JAX starts that it will run no MJX physics (``train.py`` with the kinematic
 executor) therefore takes the flag out again with :func:`drop_cpu_fix`, which removes only a
 flag this package added (marked in ``MJX_PATHTRACK_ADDED_XLA_FLAG``, so a child process can

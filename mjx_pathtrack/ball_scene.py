@@ -1,4 +1,4 @@
-"""Ball-on-plate scene: a plate fixed to the iiwa's flange and a free ball (REFERENCE §7.1).
+"""Ball-on-plate scene: a plate fixed to the iiwa's flange and a free ball (docs/robots.md §1).
 
 * Plate: box 0.3393 x 0.2715 x 0.002 m, centre 0.135 m along link 7's z, yaw -pi/2 (as the
   papers' board), mass 0.508 kg (the papers' board). Site ``plate`` at the centre of its top

@@ -1,6 +1,6 @@
 """Reference-path datasets on disk: format, loading, statistics and import of user paths.
 
-Layout (REFERENCE.md §4, adapted)::
+Layout (docs/paths.md §4, adapted)::
 
     splines/<robot>/<kind>/config.json     metadata (see below)
     splines/<robot>/<kind>/train.npz       one knot array [K_i, n_joints] (rad) per path
@@ -164,7 +164,7 @@ def load_paths(robot: str, kind: str, split: str = "test", max_knots: int | None
 
 @dataclasses.dataclass(frozen=True)
 class SplitStats:
-    """Per-split summary (REFERENCE §4.1 columns). Lengths in rad.
+    """Per-split summary (docs/paths.md §4 columns). Lengths in rad.
 
     knots, polyline_length, length: (min, mean, max) of knots per path, knot-polyline length
     and spline arc length; spacing_median / spacing_max: spline arc length between consecutive

@@ -1,6 +1,6 @@
-"""Path-tracking environment (paper 000 §III; REFERENCE.md §0-§2), a Brax ``Env``.
+"""Path-tracking environment (paper 000 §III; docs/method.md), a Brax ``Env``.
 
-One step, per environment (``jax.vmap`` over the batch; DESIGN.md "Data flow of one step"):
+One step, per environment (``jax.vmap`` over the batch; docs/architecture.md "Data flow of one step"):
 
 1. the action in [-1, 1]^n is mapped into the safe acceleration range of the current state
    or, once the path end was reached, replaced by the fastest safe braking acceleration;
@@ -49,7 +49,7 @@ class EnvConfig:
     dt [s]: decision step; n_next: knots ahead in the observation (N); substeps: setpoints per
     step (24 = 1/240 s at dt 0.1); deviation_samples: comparison points per step;
     duration [s]: time budget for a whole path (scaled by the episode's share of it);
-    start_range, min_fraction, max_fraction: random sub-path selection (REFERENCE §3.4);
+    start_range, min_fraction, max_fraction: random sub-path selection (docs/method.md §5);
     terminate_deviation [rad] (None: off); brake_at_end / terminate_on_stop: braking at the end
     and termination once |v|, |a| < stop_velocity / stop_acceleration; success_deviation [rad]:
     final deviation of a successful episode; deviation_weights: per path joint (None: plain L2);
@@ -58,11 +58,11 @@ class EnvConfig:
     training, where the state only holds the dataset index (much less memory per environment).
     end_tolerance [rad]: the end counts as reached (braking starts) once the reference position
     is within this arc length of the path end; 0 (the papers): only at the end itself. A
-    deterministic policy can stall just short of the end (README "Environment and training").
+    deterministic policy can stall just short of the end (docs/results.md "Findings of earlier recipes").
     knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
     ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
-    max_dis_between_knots``): same size, but the policy need not learn the subtraction (README
-    "Environment and training" measures the difference).
+    max_dis_between_knots``): same size, but the policy need not learn the subtraction (docs/results.md
+    "Findings of earlier recipes" measures the difference).
     """
 
     dt: float = 0.1
@@ -206,7 +206,7 @@ class PathTrackingEnv(Env):
         return path if n_knots is None else path._replace(n_knots=n_knots)
 
     def initial_state(self, rng: Array, index: Array | None = None) -> TrackState:
-        """Random path (or dataset path ``index``), random sub-path (REFERENCE §3.4), robot at
+        """Random path (or dataset path ``index``), random sub-path (docs/method.md §5), robot at
         rest on its start point. The sub-path draw does not depend on ``index``."""
         cfg = self.config
         rng, k_path, k_sub = jax.random.split(rng, 3)
@@ -335,7 +335,7 @@ class PathTrackingEnv(Env):
     # -- observation ------------------------------------------------------------------------
 
     def observe(self, track: TrackState) -> Array:
-        """Observation ``[obs_size]`` in [-1, 1] (REFERENCE §2 items 2-8)."""
+        """Observation ``[obs_size]`` in [-1, 1] (docs/method.md §4 items 1-7)."""
         cfg, lim = self.config, self.limits
         path = self.reference(track)
         window = S.knot_window(path, track.s, cfg.n_next)

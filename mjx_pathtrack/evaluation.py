@@ -1,4 +1,4 @@
-"""Episode metrics of a policy on a path-tracking environment (paper 000 §IV, REFERENCE §6.2).
+"""Episode metrics of a policy on a path-tracking environment (paper 000 §IV, docs/method.md §6).
 
 :func:`evaluate` runs a batch of episodes to their end (no auto-reset), jitted and vmapped, and
 returns per-episode arrays; :func:`summarize` turns them into the numbers training reports.
@@ -186,10 +186,10 @@ def make_evaluator(env: PathTrackingEnv, make_inference_fn, n_episodes: int, max
 
 
 # ---------------------------------------------------------------------------------------------
-# Full evaluation (paper 000 §IV, REFERENCE §6.2): recorded rollout + NumPy post-processing
+# Full evaluation (paper 000 §IV, docs/method.md §6): recorded rollout + NumPy post-processing
 # ---------------------------------------------------------------------------------------------
 
-#: arc-length spacing [rad] of the samples of the whole executed path (REFERENCE §6.2)
+#: arc-length spacing [rad] of the samples of the whole executed path (docs/method.md §6)
 SAMPLE_SPACING = 0.01
 #: tolerance of the limit audit (normalised units)
 AUDIT_TOLERANCE = 1e-6
@@ -294,7 +294,7 @@ def rotation_angle(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
 
 def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float = SAMPLE_SPACING,
                   fk_chunk: int = 8192) -> dict[str, np.ndarray]:
-    """Per-episode metrics ``{name: [B]}`` of a :class:`Rollout` (REFERENCE §6.2).
+    """Per-episode metrics ``{name: [B]}`` of a :class:`Rollout` (docs/method.md §6).
 
     Durations [s] (``stop_time_s``: robot stopped after reaching the end, ``end_time_s``: end first
     reached; NaN if never); joint deviation [rad] mean/max/final over the whole executed path

@@ -1,4 +1,4 @@
-"""How setpoints become motion: the executor of one decision step (DESIGN.md "Contracts").
+"""How setpoints become motion: the executor of one decision step (docs/architecture.md "Contracts").
 
 An executor has ``init(p0) -> exec_state`` and ``execute(exec_state, p, v, a0, a1, dt) ->
 (exec_state, executed [S+1, n], sensors)``: the step's acceleration goes linearly from ``a0`` to
@@ -7,7 +7,7 @@ the ``S`` sub-steps; ``sensors`` is a dict of arrays (empty if none). Pure JAX, 
 per call (vmap for batches).
 
 * :class:`KinematicExecutor` -- an ideal trajectory controller: executed = setpoints. The papers'
-  default for tasks without sensor feedback (REFERENCE §0: reward and observation are kinematic).
+  default for tasks without sensor feedback (docs/method.md §1: reward and observation are kinematic).
 * :class:`MjxExecutor` -- position/velocity servos of a :class:`~mjx_pathtrack.robots.Robot` in
   MJX physics, ``robot.n_substeps`` physics steps per decision step; executed = measured joint
   positions. Its state is the per-environment ``mjx.Data``.

@@ -43,7 +43,7 @@ def _finite_or_none(values) -> list:
 
 def observation_layout(n_joints: int, n_path: int, n_next: int,
                        extra: list[tuple[str, int]] = ()) -> list[dict]:
-    """Named slices of the observation (REFERENCE §2): ``[{name, start, size}, ...]``; ``extra``:
+    """Named slices of the observation (docs/method.md §4): ``[{name, start, size}, ...]``; ``extra``:
     the task's sensor blocks ``[(name, size), ...]`` appended at the end."""
     blocks = [("position", n_joints), ("velocity", n_joints), ("acceleration", n_joints),
               ("knots", n_path * (n_next + 1)), ("offset_from_first_knot", 1), ("state_path_length", 1),

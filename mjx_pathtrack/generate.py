@@ -1,11 +1,11 @@
-"""Dataset generation: reference paths recorded from random safe motions (REFERENCE §4.4), and
+"""Dataset generation: reference paths recorded from random safe motions (docs/paths.md §5), and
 the registry of dataset kinds (:data:`KINDS`: ``random``, ``target_point`` -> generator).
 
 ``random``: from a random start inside the position limits, a random agent draws actions
 U(-1, 1) per joint and step, maps them into the safe acceleration range (limits.py) and records
 the setpoints at ``substeps`` per decision step; motions that enter self-collision (when a
 collision check is given) are rejected. Each recording is resampled by curvature (0.1 -> 0.3,
-REFERENCE §3.5) into a knot array. The rollouts are one jitted, vmapped scan.
+docs/paths.md §3) into a knot array. The rollouts are one jitted, vmapped scan.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def random_paths(limits: L.JointLimits, n_paths: int, seed: int, steps: int = 80
     All joints of ``limits`` move; motions with a self-colliding setpoint (``in_collision``
     over all joints) are rejected; the knots cover ``path_joints`` (indices, default all).
     ``steps = 80`` decision steps (8 s) give paths like the papers' iiwa random set (~23 rad,
-    ~150 knots, REFERENCE §4.1); the recording duration is not published."""
+    ~150 knots, docs/paths.md §4); the recording duration is not published."""
     key = jax.random.PRNGKey(seed)
     rollout = jax.jit(random_motions, static_argnums=(2, 3, 4, 5))
     paths: list[np.ndarray] = []

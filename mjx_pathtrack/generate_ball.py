@@ -1,4 +1,4 @@
-"""Ball-balancing dataset: joint paths along which the iiwa's plate stays horizontal (REFERENCE §3.5, §4).
+"""Ball-balancing dataset: joint paths along which the iiwa's plate stays horizontal (docs/paths.md §3, §5).
 
 The papers' ball-balancing paths (``industrial/ball_balancing``: 12/14/19 knots, 3.2/3.8/5.1 rad,
 knot spacing 0.3) were recorded from an agent whose recording code is not released; here they are
@@ -19,7 +19,7 @@ built from Cartesian curves:
    ``max_tilt_deg`` at points every 0.01 rad of arc length and stays inside the joint limits
    shrunk by ``limit_margin``.
 
-:data:`REFLECTION_VECTORS` (``config.json`` key ``reflection_vectors``, REFERENCE §4.3) multiply
+:data:`REFLECTION_VECTORS` (``config.json`` key ``reflection_vectors``, docs/paths.md §5) multiply
 the joint positions of a path element-wise; each is a mirror of the arm in a vertical plane (or
 two of them), so a reflected path keeps the plate level and stays inside the symmetric iiwa
 limits: 4x data augmentation (:func:`reflect_paths`).
@@ -36,7 +36,7 @@ import numpy as np
 
 from mjx_pathtrack import spline
 
-#: REFERENCE §4.3: identity, all joints negated, z-axis joints negated, y-axis joints negated
+#: docs/paths.md §5: identity, all joints negated, z-axis joints negated, y-axis joints negated
 REFLECTION_VECTORS = ((1.0,) * 7, (-1.0,) * 7, (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0),
                       (1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0))
 PLATE_SITE = "plate"

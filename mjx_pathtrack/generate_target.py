@@ -1,4 +1,4 @@
-"""Target-point dataset (REFERENCE §4.4, paper 000 §V-A): point-to-point motions between random
+"""Target-point dataset (docs/paths.md §5, paper 000 §V-A): point-to-point motions between random
 Cartesian targets, and the segment recorder it shares with the collision-aware random agent.
 
 Target point. A path starts at rest in a random collision-free configuration. Repeatedly:
@@ -20,7 +20,7 @@ Target point. A path starts at rest in a random collision-free configuration. Re
    ``max_segment_steps``, is dropped and a new target drawn from the same state.
 
 Segments are appended until the path has used ``steps`` decision steps; the recording is then
-resampled by curvature (0.1 -> 0.3, REFERENCE §3.5). Every path is driven by its own key
+resampled by curvature (0.1 -> 0.3, docs/paths.md §3). Every path is driven by its own key
 (``fold_in(seed, path index)``), so a larger split starts with the paths of a smaller one.
 
 Collision-aware random agent (:func:`safe_random_paths`, used for robots whose random motions
@@ -48,7 +48,7 @@ Array = jax.Array
 
 #: a joint has arrived when within this distance [rad] of its goal ...
 REACH_POS = 1e-3
-#: ... and slower than this [rad/s] (REFERENCE §1.6's robot-stopped threshold) ...
+#: ... and slower than this [rad/s] (docs/method.md §3's robot-stopped threshold) ...
 REACH_VEL = 1e-2
 #: ... with an acceleration below this [rad/s^2]
 REACH_ACC = 0.1

@@ -1,4 +1,4 @@
-"""KUKA LBR iiwa 7 R800 kinematic limits as used by the papers (REFERENCE §5.3, §7.1).
+"""KUKA LBR iiwa 7 R800 kinematic limits as used by the papers (docs/limits.md §3, docs/robots.md §1).
 
 Positions are the URDF limits minus the 0.035 rad safety buffer of the papers' robot scene;
 velocities from the URDF; accelerations from the papers' code; jerk 2 a_max / dt by default.

@@ -60,7 +60,7 @@ stop passes the same check: it avoids overshoot-and-return oscillations. Against
 form's grid candidate sometimes lands one grid value lower) and is never wider there; the rare narrower states are next to a limit,
 where klimits' profile accepts stops that overshoot ``P`` inside a step or leave no velocity-safe
 continuation. klimits solves each piece of its profile family in closed form (generated C code,
-REFERENCE §5.2) and has no velocity-safe tail and no float32 reserve; here the pieces are
+docs/limits.md §2) and has no velocity-safe tail and no float32 reserve; here the pieces are
 simpler (one braking profile) but verified with an exact check, and the tail is the extra cost.
 
 Float32: limits are pulled in by ``MARGIN``; each planned stop keeps a position reserve per
@@ -143,7 +143,7 @@ class JointLimits:
 
     @classmethod
     def from_acc(cls, pos_min, pos_max, vel, acc, dt: float, jerk_factor: float = 1.0, names=None):
-        """Limits with the papers' default jerk ``jerk_factor * 2 * acc / dt`` (REFERENCE §5.3)."""
+        """Limits with the papers' default jerk ``jerk_factor * 2 * acc / dt`` (docs/limits.md §3)."""
         acc = np.asarray(acc, dtype=np.float64)
         return cls(pos_min, pos_max, vel, acc, jerk_factor * 2.0 * acc / dt, names=names)
 

@@ -1,4 +1,4 @@
-"""Reward terms of path tracking (paper 000 §III-D; REFERENCE.md §1), each in [0, 1].
+"""Reward terms of path tracking (paper 000 §III-D; docs/method.md §2), each in [0, 1].
 
 Pure JAX, elementwise over any leading batch shape. The environment combines them as
 ``alpha * R_l + w_max * R_d(d_max) + w_mean * R_d(d_mean) + task terms`` (see
@@ -24,7 +24,7 @@ def quadratic_decrease(x: Array, x_max) -> Array:
 
 
 def distance_reward(length: Array, length_state: Array, length_over) -> Array:
-    """Path-length reward R_l (REFERENCE §1.2).
+    """Path-length reward R_l (docs/method.md §2.2).
 
     ``length``: arc length commanded in this step (l); ``length_state``: reference length covered
     by the observed knots ahead of the current position (l_State); ``length_over``: the overshoot
@@ -39,12 +39,12 @@ def distance_reward(length: Array, length_state: Array, length_over) -> Array:
 
 
 def deviation_reward(deviation: Array, threshold=0.25) -> Array:
-    """Deviation reward R_d = ``(1 - min(1, d / threshold))**2`` (REFERENCE §1.3); d [rad]."""
+    """Deviation reward R_d = ``(1 - min(1, d / threshold))**2`` (docs/method.md §2.3); d [rad]."""
     return quadratic_decrease(deviation, threshold)
 
 
 def deviation_normalizer(weights: Array) -> Array:
-    """``sqrt(n / sum(w**2))`` for per-joint deviation weights ``w`` [n] (REFERENCE §1.5), so that a
+    """``sqrt(n / sum(w**2))`` for per-joint deviation weights ``w`` [n] (docs/method.md §2.5), so that a
     deviation of the same size on every joint has the same weighted norm as without weights."""
     weights = jnp.asarray(weights, jnp.float32)
     return jnp.sqrt(weights.shape[-1] / jnp.sum(jnp.square(weights), axis=-1))
@@ -60,7 +60,7 @@ def weighted_deviation(q_ref: Array, q: Array, weights: Array | None = None) -> 
 
 
 def action_reward(action: Array, close_to_end: Array, peak: float = 1.0, start: float = 0.9) -> Array:
-    """R_action (REFERENCE §1.4, iiwa random/target-point nets): rewards using the range fully.
+    """R_action (docs/method.md §2.4, iiwa random/target-point nets): rewards using the range fully.
 
     ``action`` [..., n] in [-1, 1]; m = max |action|: 0 for ``m <= start``, then
     ``max(0, 1 - ((m - peak)/(start - peak))**2)`` (1 at m = peak); 1 once the end knot is in the
@@ -73,12 +73,12 @@ def action_reward(action: Array, close_to_end: Array, peak: float = 1.0, start: 
 
 #: normalisation of the ball position on the plate: half plate size minus 0.03 m [m]
 BALL_HALF_RANGE = (0.5 * 0.3393 - 0.03, 0.5 * 0.2715 - 0.03)
-#: offset of the ball reward (REFERENCE §1.4: a length used against normalised coordinates)
+#: offset of the ball reward (docs/method.md §2.4: a length used against normalised coordinates)
 BALL_OFFSET = 0.06
 
 
 def ball_reward(ball_xy: Array, half_range=BALL_HALF_RANGE, offset: float = BALL_OFFSET) -> Array:
-    """R_ball (REFERENCE §1.4): ``clip((1 - max_i |rel_i|)/(1 - offset), 0, 1)**2`` while the ball
+    """R_ball (docs/method.md §2.4): ``clip((1 - max_i |rel_i|)/(1 - offset), 0, 1)**2`` while the ball
     is on the plate (all ``|rel_i| < 1``), else 0. ``ball_xy`` [..., 2]: ball position in the plate
     frame [m]; ``rel = ball_xy / half_range``.
 
@@ -103,7 +103,7 @@ def orientation_error(quat_wxyz: Array) -> Array:
 
 @dataclasses.dataclass(frozen=True)
 class RewardWeights:
-    """Weights of the reward terms (defaults: the papers' iiwa random-path network, REFERENCE §1.4).
+    """Weights of the reward terms (defaults: the papers' iiwa random-path network, docs/method.md §2.4).
 
     ``alpha``: path-length reward; ``max_deviation``/``mean_deviation``: R_d of d_max / d_mean;
     ``deviation_threshold`` [rad]; ``action``: R_action; ``ball``: R_ball; ``base_pos``,
@@ -140,7 +140,7 @@ def tracking_terms(weights: RewardWeights, length: Array, length_state: Array, l
 
 def balance_terms(weights: RewardWeights, base_pos: Array, base_quat: Array, base_z_axis: Array,
                   end_point_error: Array) -> dict[str, Array]:
-    """Named, weighted humanoid balance terms (REFERENCE §1.4): ``base_pos`` [..., 3] [m] relative
+    """Named, weighted humanoid balance terms (docs/method.md §2.4): ``base_pos`` [..., 3] [m] relative
     to the start, ``base_quat`` [..., 4] (w first), ``base_z_axis`` [..., 3], ``end_point_error``
     [...] mean Cartesian end-point distance [m]."""
     return {

@@ -53,9 +53,9 @@ Array = jax.Array
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
 IIWA_URDF = ASSETS_DIR / "iiwa7" / "iiwa7.urdf"
 
-#: the papers' position safety buffer subtracted from URDF limits [rad or m] (REFERENCE §5.3)
+#: the papers' position safety buffer subtracted from URDF limits [rad or m] (docs/limits.md §3)
 POS_BUFFER = 0.035
-#: decision step [s] (REFERENCE §5.3)
+#: decision step [s] (docs/limits.md §3)
 DECISION_DT = 0.1
 #: simulation step [s]: the papers' PyBullet step
 SIM_DT = 1.0 / 240.0
@@ -94,7 +94,7 @@ def _armar_urdf(robot_name: str) -> Callable[[], Path]:
 
 
 def _armar4_acc(name: str) -> float:
-    """REFERENCE §5.3: legs 3.0; torso yaw 7, pitch 4.5; arm sho1 7.5, other arm joints 15."""
+    """docs/limits.md §3: legs 3.0; torso yaw 7, pitch 4.5; arm sho1 7.5, other arm joints 15."""
     if name.startswith("leg_"):
         return 3.0
     if name == "torso_yaw_joint":
@@ -131,7 +131,7 @@ class Robot:
         mj_model: compiled ``mujoco.MjModel``; ``mjx_model``: the same on device (``mjx.put_model``).
         joint_names: ``n`` controlled joints, in ``JointLimits`` order.
         limits: :class:`JointLimits` ``[n]`` (URDF position limits minus ``pos_buffer``, URDF
-            velocities, accelerations from REFERENCE §5.3, jerk ``jerk_factor * 2 a / dt``).
+            velocities, accelerations from docs/limits.md §3, jerk ``jerk_factor * 2 a / dt``).
         path_mask: bool ``[n]``: joints whose positions the reference path specifies.
         target_sites: names of the MuJoCo sites used as FK target points (TCP / fingertips).
         q0: ``[n]`` initial joint positions (0 clipped into the limits) [rad].
@@ -305,7 +305,7 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
 def _joint_limits(name: str, joints: list[UrdfJoint], spec_def: _Spec, opts: dict) -> JointLimits:
     """URDF position limits minus ``pos_buffer``, URDF velocities, registry accelerations. The iiwa
     with the default buffer uses :mod:`mjx_pathtrack.iiwa` (the single source of its constants,
-    which are the same numbers rounded to 5 digits as in REFERENCE §5.3)."""
+    which are the same numbers rounded to 5 digits as in docs/limits.md §3)."""
     names = tuple(j.name for j in joints)
     if name.startswith("iiwa") and opts["pos_buffer"] == POS_BUFFER:
         if names != iiwa.JOINT_NAMES:

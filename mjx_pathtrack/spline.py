@@ -1,6 +1,6 @@
 """Joint-space reference paths: natural cubic splines through knots, addressed by arc length.
 
-Two halves (REFERENCE.md §2, §3; paper 000 §III-B/C, Fig. 3, 4, 8):
+Two halves (docs/paths.md, docs/method.md §4-§5; paper 000 §III-B/C, Fig. 3, 4, 8):
 
 *Offline* (NumPy/SciPy, float64) -- :func:`fit_spline` fits a natural cubic spline through the
 knots with the (un-normalised) chord length as parameter, after dropping consecutive duplicate
@@ -11,7 +11,7 @@ arc length or equal integrated curvature; :func:`make_path` turns a fit into a :
 :class:`Path` is a fixed-size pytree (:class:`DatasetPath` reads one row of a stacked dataset in
 place, for the same functions); :func:`point_at`, :func:`knot_window`,
 :func:`remaining_length`, :func:`replace_ahead` (path adjustment during motion),
-:func:`deviation` (REFERENCE §1.5), :func:`truncate_at` and :func:`sample_sub_path` (episode
+:func:`deviation` (docs/method.md §2.5), :func:`truncate_at` and :func:`sample_sub_path` (episode
 sub-path, end snapped to a knot, §3.4).
 
 Representation. Segment ``i`` (between knots ``i`` and ``i+1``) is the cubic
@@ -133,7 +133,7 @@ def fit_spline(knots, samples_per_segment: int = SAMPLES_PER_SEGMENT) -> SplineF
 
 
 def resample_by_distance(fit: SplineFit, distance: float) -> np.ndarray:
-    """New knots ``[K', n]`` at arc lengths ``0, d, 2d, ...`` plus the end (REFERENCE §3.5.2)."""
+    """New knots ``[K', n]`` at arc lengths ``0, d, 2d, ...`` plus the end (docs/paths.md §3)."""
     if not distance > 0:
         raise ValueError(f"resampling distance must be > 0, got {distance}")
     s = np.append(np.arange(0.0, fit.length, distance), fit.length)
@@ -157,7 +157,7 @@ def curvature_table(fit: SplineFit) -> np.ndarray:
 
 
 def resample_by_curvature(fit: SplineFit, curvature_distance: float) -> np.ndarray:
-    """New knots ``[K', n]`` at equal increments of integrated curvature (REFERENCE §3.5.3,
+    """New knots ``[K', n]`` at equal increments of integrated curvature (docs/paths.md §3,
     paper Fig. 8b), plus the end point. Straight stretches get few knots, bends many."""
     if not curvature_distance > 0:
         raise ValueError(f"curvature distance must be > 0, got {curvature_distance}")
@@ -174,7 +174,7 @@ def resample_by_curvature(fit: SplineFit, curvature_distance: float) -> np.ndarr
 
 def resample(knots, distance: float = 0.1, curvature_distance: float | None = 0.3,
              samples_per_segment: int = SAMPLES_PER_SEGMENT) -> np.ndarray:
-    """The papers' dataset pipeline (REFERENCE §3.5): fit, resample every ``distance`` of arc
+    """The papers' dataset pipeline (docs/paths.md §3): fit, resample every ``distance`` of arc
     length, then (if ``curvature_distance`` is not None) refit and resample every
     ``curvature_distance`` of integrated curvature. Returns knots ``[K', n]``."""
     knots = resample_by_distance(fit_spline(knots, samples_per_segment), distance)
@@ -355,7 +355,7 @@ class DatasetPath(NamedTuple):
     :func:`deviation` and ``length`` return bit for bit what they return for
     :meth:`materialize`, the copied row, but gather only the entries they need: vmapped over
     environments, copying each environment's row of a dataset (~60 kB at 174 knots) every step
-    took ~10 % of the environment step's kernel time on CPU (README "Where the CPU time of
+    took ~10 % of the environment step's kernel time on CPU (docs/results.md "Where the CPU time of
     training goes"). ``row`` ``[]`` int32, ``n_knots`` ``[]`` int32;
     vmap over them (not over ``paths``).
     """
@@ -472,12 +472,12 @@ def remaining_length(path: AnyPath, s: Array) -> Array:
 
 
 class KnotWindow(NamedTuple):
-    """The knots an observation shows (REFERENCE §2 items 5-8), raw (not normalised).
+    """The knots an observation shows (docs/method.md §4 items 4-7), raw (not normalised).
 
     knots ``[N+1, n]``: knot0 = last knot at or before s, then the next N (end knot repeated);
-    index ``[N+1]`` their knot indices; offset ``[]`` = s - s(knot0) (item 6);
-    knot_distances ``[N]`` = s(knot_i) - s(knot0), i = 1..N (item 8); state_length ``[]`` =
-    s(knot_N) - s(knot0) (item 7); last_s ``[]`` = s(knot_N), the reward's ``last_obs_dis``;
+    index ``[N+1]`` their knot indices; offset ``[]`` = s - s(knot0) (item 5);
+    knot_distances ``[N]`` = s(knot_i) - s(knot0), i = 1..N (item 7); state_length ``[]`` =
+    s(knot_N) - s(knot0) (item 6); last_s ``[]`` = s(knot_N), the reward's ``last_obs_dis``;
     close_to_end ``[]`` bool, knot_N is the end knot.
     """
 
@@ -494,7 +494,7 @@ def knot_window(path: AnyPath, s: Array, n: int) -> KnotWindow:
     """Knot before ``s`` and the next ``n`` knots (static ``n``), with their distances.
 
     ``s`` is clamped to ``[0, length]``; indices beyond the end knot repeat the end knot, so the
-    distances saturate and are all 0 once ``s`` reaches the end (REFERENCE §2).
+    distances saturate and are all 0 once ``s`` reaches the end (docs/method.md §4).
     """
     end = path.n_knots - 1
     s = jnp.clip(s, 0.0, path.length)
@@ -507,7 +507,7 @@ def knot_window(path: AnyPath, s: Array, n: int) -> KnotWindow:
 
 
 def truncate_at(path: AnyPath, s_end: Array) -> AnyPath:
-    """The path ending at the first knot with arc position ``>= s_end`` (REFERENCE §3.4,
+    """The path ending at the first knot with arc position ``>= s_end`` (docs/method.md §5,
     ``set_u_end_index``). Jittable; the end is never before knot 1."""
     k = _searchsorted(path, "knot_s", s_end, "left")
     k = jnp.clip(k, 1, path.n_knots - 1)
@@ -516,7 +516,7 @@ def truncate_at(path: AnyPath, s_end: Array) -> AnyPath:
 
 def sample_sub_path(path: AnyPath, key: Array, start_range: tuple[float, float] = (0.0, 0.8),
                     diff_min: float = 0.2, diff_max: float = 1.0) -> tuple[AnyPath, Array]:
-    """Random episode sub-path (REFERENCE §3.4): ``u_start ~ U(start_range)``, ``u_end ~
+    """Random episode sub-path (docs/method.md §5): ``u_start ~ U(start_range)``, ``u_end ~
     U(min(u_start + diff_min, 1), min(u_start + diff_max, 1))`` as fractions of the length; the
     end snaps to the next knot (:func:`truncate_at`). Returns ``(path, s_start)``, ``s_start``
     [rad] the arc position where the robot starts at rest. Jittable; vmap over keys/paths."""
@@ -532,7 +532,7 @@ def deviation(path: AnyPath, s0: Array, offsets: Array, points: Array,
               weights: Array | None = None) -> Array:
     """Deviation ``[k]`` between executed positions and the reference at equal arc length.
 
-    REFERENCE §1.5: ``points [k, n]`` are the executed (action-spline) positions at arc lengths
+    docs/method.md §2.5: ``points [k, n]`` are the executed (action-spline) positions at arc lengths
     ``offsets [k]`` from the step's start; each is compared with the reference at ``s0 +
     offsets`` (the end knot beyond the end). Per sample ``|(q_ref - q) * w| * sqrt(n / sum w^2)``
     (plain L2 without ``weights [n]``). ``d_mean``/``d_max`` are the caller's mean/max over the

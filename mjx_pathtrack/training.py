@@ -41,7 +41,7 @@ _jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the p
 EXECUTORS = ("kinematic", "mjx")
 #: task variants (``TrainConfig.task``): plain path tracking or a sensory-feedback task (mjx_pathtrack.tasks)
 TASKS = ("tracking", "ball_on_plate", "balance")
-#: per-path-joint deviation weights of the papers' nets (REFERENCE §1.5)
+#: per-path-joint deviation weights of the papers' nets (docs/method.md §2.5)
 _IIWA_W = (1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
 _ARMAR4_W = (1.0, 1.0) + 2 * (1.0, 1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6)
 DEVIATION_WEIGHTS = {"iiwa": _IIWA_W, "iiwa_ball": _IIWA_W,
@@ -54,7 +54,7 @@ class TrainConfig:
     """Everything that defines a training run (saved as ``config.json`` in the run directory).
 
     The PPO settings are tuned for Brax on a CPU budget (the papers' RLlib settings in
-    REFERENCE §6.1 use 300k-sample batches and lr 5e-5 over days); networks are the papers'
+    docs/training.md §1 use 300k-sample batches and lr 5e-5 over days); networks are the papers'
     separate 256-128 policy and value MLPs with swish activations.
     """
 
@@ -65,11 +65,11 @@ class TrainConfig:
     dt: float = 0.1
     n_next: int = 8
     #: observation of the next knots: "relative" (knot - position, env.EnvConfig.knots_frame; our
-    #: default: PPO learns far faster with it, README "Environment and training") or "absolute"
-    #: (the papers' layout, REFERENCE §2)
+    #: default: PPO learns far faster with it, docs/results.md "Findings of earlier recipes") or "absolute"
+    #: (the papers' layout, docs/method.md §4)
     knots_frame: str = "relative"
     #: weight of R_l; 3 (the papers' iiwa nets: 2) makes the deterministic policy faster at the
-    #: same budget (README "Learning recipe": ratio to TOPP-RA 1.47 against 1.54 at 2)
+    #: same budget (docs/results.md "Learning recipe": ratio to TOPP-RA 1.47 against 1.54 at 2)
     alpha: float = 3.0
     beta: float = 0.9
     deviation_threshold: float = 0.25
@@ -100,7 +100,7 @@ class TrainConfig:
     final_noise_std: float | None = 0.05
     mean_init_scale: float = 0.01
     #: bound of the policy mean, ``mean_clip * x / (1 + |x|)`` (Brax's ``mean_clip_scale``), like the
-    #: papers' tanh mean head (REFERENCE §6.1); None: an unbounded mean
+    #: papers' tanh mean head (docs/training.md §1); None: an unbounded mean
     mean_clip: float | None = None
     seed: int = 0
     task: str = "tracking"
@@ -140,7 +140,7 @@ class TrainConfig:
         return cls(**data)
 
 
-#: the papers' settings (REFERENCE §1.4, §1.6, §6.1) that ``train.py`` applies as flag defaults
+#: the papers' settings (docs/method.md §2.4, §3, docs/training.md §1) that ``train.py`` applies as flag defaults
 #: for a robot / task; explicit flags still override them
 PRESETS = {
     "armar6": dict(robot="armar6", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
@@ -153,7 +153,7 @@ PRESETS = {
 
 
 #: training recipes at larger budgets (``train.py --preset NAME``), flag defaults applied on top
-#: of the robot/task presets (explicit flags still win); any robot or dataset (README "Learning recipe")
+#: of the robot/task presets (explicit flags still win); any robot or dataset (docs/results.md "Learning recipe")
 RECIPES = {
     # meant for paper quality on the iiwa random paths within an hour on 2 CPU cores (not yet measured)
     "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05),

@@ -1,5 +1,5 @@
 """Ball-on-plate task (MJX): a still robot keeps the ball for the whole episode, tilting the plate
-drops it and ends the episode; observation sizes of REFERENCE §2; the train.py preset.
+drops it and ends the episode; observation sizes of docs/method.md §4; the train.py preset.
 
 One jitted rollout of two environments (batch 2) covers the physics tests."""
 

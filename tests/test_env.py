@@ -21,7 +21,7 @@ def env():
 
 
 def test_observation_layout_matches_reference_size(env):
-    # REFERENCE §2: 3 n + n (N + 1) + 1 + 1 + N = 94 for the iiwa with N = 8
+    # docs/method.md §4: 3 n + n (N + 1) + 1 + 1 + N = 94 for the iiwa with N = 8
     assert env.observation_size == 94 and env.action_size == 7
     state = jax.jit(env.reset)(jax.random.PRNGKey(0))
     assert state.obs.shape == (94,)

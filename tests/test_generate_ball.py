@@ -32,7 +32,7 @@ def test_committed_paths_keep_the_plate_level_inside_the_limits(kin, test_paths)
 
 
 def test_committed_statistics_match_the_papers_set(test_paths):
-    """REFERENCE §4.1 industrial/ball_balancing/test: knots 12/14/19, 3.2/3.8/5.1 rad, spacing 0.3."""
+    """docs/paths.md §4 industrial/ball_balancing/test: knots 12/14/19, 3.2/3.8/5.1 rad, spacing 0.3."""
     st = datasets.split_stats(test_paths)
     assert st.n_paths == 200 and st.n_joints == 7
     assert 11 <= st.knots[0] and 13 <= st.knots[1] <= 16 and st.knots[2] <= 22

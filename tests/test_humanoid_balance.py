@@ -1,5 +1,5 @@
 """ARMAR-4 balance task: standing still keeps it upright, a push makes it fall and ends the
-episode, observation sizes of REFERENCE §2. One jitted rollout (MJX with contacts compiles
+episode, observation sizes of docs/method.md §4. One jitted rollout (MJX with contacts compiles
 slowly) serves the physics tests."""
 
 import dataclasses

@@ -1,4 +1,4 @@
-"""Reward terms against the published example values (REFERENCE.md §1) and their invariants."""
+"""Reward terms against the published example values (docs/method.md §2) and their invariants."""
 
 import numpy as np
 import pytest
@@ -13,7 +13,7 @@ from mjx_pathtrack import reward as R
 @pytest.mark.parametrize("ratio, expected", [(0.25, 0.4375), (0.5, 0.75), (0.75, 0.9375), (0.9, 0.99),
                                              (1.0, 1.0), (1.5, 0.87), (3.0, 0.534)])
 def test_distance_reward_matches_reference_table(ratio, expected):
-    # REFERENCE §1.2 table: L_over = 7.43, l_State = 1
+    # docs/method.md §2.2 table: L_over = 7.43, l_State = 1
     value = float(R.distance_reward(jnp.float32(ratio), jnp.float32(1.0), 7.43))
     assert value == pytest.approx(expected, abs=6e-4)
 

@@ -1,4 +1,4 @@
-"""Tests of mjx_pathtrack.robots: registry, limits vs REFERENCE tables, FK, tracking, ARMAR models.
+"""Tests of mjx_pathtrack.robots: registry, limits vs the tables of docs/limits.md and docs/robots.md, FK, tracking, ARMAR models.
 
 MJX compilations are kept few (FK per robot, one batched tracking rollout); everything that does
 not need MJX runs on MuJoCo C.
@@ -94,7 +94,7 @@ def test_missing_urdf_file(tmp_path):
         load_urdf(tmp_path / "nope.urdf")
 
 
-# --- joint counts and limits (REFERENCE §5.3, §7) --------------------------------------------
+# --- joint counts and limits (docs/limits.md §3, docs/robots.md) --------------------------------------------
 
 @pytest.mark.parametrize("name,n,n_path", [
     ("iiwa", 7, 7), ("iiwa_ball", 7, 7), ("armar6", 17, 17), ("armar4", 18, 18), ("armar4_legs", 30, 18),
@@ -108,7 +108,7 @@ def test_joint_counts(robots, name, n, n_path):
 
 
 def test_iiwa_urdf_matches_reference_table():
-    # REFERENCE §7.1 table (the papers' URDF): lower/upper, velocity
+    # docs/robots.md §1 table (the papers' URDF): lower/upper, velocity
     pos = [2.9670597283903604, 2.0943951023931953, 2.9670597283903604, 2.0943951023931953,
            2.9670597283903604, 2.0943951023931953, 3.0543261909900763]
     vel = [1.710422666954443, 1.710422666954443, 1.7453292519943295, 2.2689280275926285,
@@ -142,7 +142,7 @@ def test_jerk_options():
 
 
 def _table(robot, table):
-    """Compare ``{joint: (lo, hi, vel, acc)}`` (URDF limits of REFERENCE §7.2) with robot.limits."""
+    """Compare ``{joint: (lo, hi, vel, acc)}`` (URDF limits of docs/robots.md §2-3) with robot.limits."""
     lim = robot.limits
     for joint, (lo, hi, vel, acc) in table.items():
         i = robot.joint_names.index(joint)
@@ -200,7 +200,7 @@ def _ry(a):
 
 
 def test_iiwa_fk_hand_computed(robots):
-    """Shoulder at 0.34 m, elbow +0.40, wrist +0.40, TCP +0.126 (REFERENCE §7.1); frames parallel at q = 0."""
+    """Shoulder at 0.34 m, elbow +0.40, wrist +0.40, TCP +0.126 (docs/robots.md §1); frames parallel at q = 0."""
     half = np.pi / 2
     q = np.zeros((3, 7))
     q[1, 1] = half  # joint 2 (axis y) by 90 deg: the arm above the shoulder points along +x

@@ -158,7 +158,7 @@ def test_curvature_resampling_puts_knots_into_bends():
     assert in_bend / 0.414 > 5 * straight / 3.4
     assert len(curv_knots) < len(dist_knots) / 3
     # the new knots lie on the distance-resampled curve (the refit between them may cut corners
-    # on long straights: that is the method, REFERENCE §3.5)
+    # on long straights: that is the method, docs/paths.md §3)
     fine = S.fit_spline(dist_knots)
     gap = np.linalg.norm(curv_knots[:, None] - fine.point_at(np.linspace(0, fine.length, 40001))[None],
                          axis=-1).min(1)

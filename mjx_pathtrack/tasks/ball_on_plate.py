@@ -1,10 +1,10 @@
-"""Ball on plate (paper 000 §IV-B, REFERENCE §1.4, §2, §7.1): track a ball-balancing path with the
+"""Ball on plate (paper 000 §IV-B, docs/method.md §2.4, §4, docs/robots.md §4): track a ball-balancing path with the
 iiwa while a free ball rolls on the plate at its flange (MJX physics, ``iiwa_ball`` scene).
 
 :class:`BallOnPlateEnv` is a :class:`~mjx_pathtrack.env.PathTrackingEnv` whose executor
 (:class:`BallExecutor`) also simulates the ball; it adds, per step:
 
-* observation (REFERENCE §2 items 10-11): the Cartesian reference point (FK of the reference at
+* observation (docs/method.md §4 item 8): the Cartesian reference point (FK of the reference at
   the new arc position, target site ``iiwa_link_ee``) normalised over x, y in [-1, 1] m, z in
   [-0.7, 1.3] m; the reference point minus the executed end point, normalised by 0.1 m; with
   ``sensor``, the ball position in the plate frame of the previous and current step,
@@ -21,7 +21,7 @@ Per episode the ball's radius (20-36 mm), mass (2-203 g), rolling and torsional 
 (±0.0797 m x ±0.0458 m) are drawn. The ball's model parameters are re-derived every step from a
 per-environment key, so a batch of environments shares one ``mjx.Model``.
 
-The papers' ball nets (REFERENCE §1.4, §1.6, §6): N = 4, alpha = 4, deviation weights 0.9/0.9,
+The papers' ball nets (docs/method.md §2.4, §3, docs/training.md §1): N = 4, alpha = 4, deviation weights 0.9/0.9,
 no action reward, 6 s per path, whole paths (no sub-paths), no forced braking at the end (the
 episode runs to its time budget).
 """
@@ -47,17 +47,17 @@ from mjx_pathtrack.executors import setpoints
 
 Array = jax.Array
 
-#: REFERENCE §2 item 10: Cartesian range of the reference point [m] (scene 8) and of the relative point
+#: docs/method.md §4 item 8: Cartesian range of the reference point [m] (scene 8) and of the relative point
 TARGET_RANGE_LO = (-1.0, -1.0, -0.7)
 TARGET_RANGE_HI = (1.0, 1.0, 1.3)
 RELATIVE_RANGE = 0.1
-#: rolling and torsional friction range of the ball (REFERENCE §7.1) [m]
+#: rolling and torsional friction range of the ball (docs/robots.md §1) [m]
 FRICTION_RANGE = (1e-4, 6e-4)
 #: dataset of the task (splines/iiwa/ball_balancing)
 DATASET = ("iiwa", "ball_balancing")
 
 
-#: observation blocks added after the path-tracking observation (REFERENCE §2 items 10-11), in order
+#: observation blocks added after the path-tracking observation (docs/method.md §4 item 8), in order
 CARTESIAN_BLOCKS = (("target_point", 3), ("target_minus_executed_point", 3))
 SENSOR_BLOCKS = (("ball_xy_previous", 2), ("ball_xy", 2))  # only with the ball sensor
 
@@ -241,14 +241,14 @@ class BallOnPlateEnv(PathTrackingEnv):
 
 
 def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) -> int:
-    """REFERENCE §2: ``3 n + n (N + 1) + 2 + N + 6 (+ 4 with the ball sensor)``."""
+    """docs/method.md §4: ``3 n + n (N + 1) + 2 + N + 6 (+ 4 with the ball sensor)``."""
     return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra_blocks(sensor))
 
 
 def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallConfig = BallConfig(),
              reflections: bool = False, dt: float = 0.1, root=None) -> BallOnPlateEnv:
     """The task on ``splines/iiwa/ball_balancing/<split>``; ``reflections``: add the dataset's
-    reflected copies of every path (REFERENCE §4.3, 4x augmentation)."""
+    reflected copies of every path (docs/paths.md §5, 4x augmentation)."""
     from mjx_pathtrack import datasets, robots
     from mjx_pathtrack.generate_ball import REFLECTION_VECTORS, reflect_paths
 
@@ -277,7 +277,7 @@ def from_train_config(config, split: str = "train", evaluation: bool = False) ->
     the ball falls. ``ball_reward == 0``: the papers' "no balancing reward" net -- trained on the
     same paths with the ball simulated but neither observed, rewarded nor ending the episode;
     ``evaluation=True`` still ends episodes when it falls (the reported failure). The train split
-    gets the 4 reflections of every path (REFERENCE §4.3)."""
+    gets the 4 reflections of every path (docs/paths.md §5)."""
     with_ball = config.ball_reward > 0
     env_cfg = dataclasses.replace(config.env_config(), start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
                                   brake_at_end=False, terminate_on_stop=False)

@@ -1,4 +1,4 @@
-"""ARMAR-4 keeping its balance while its upper body tracks a path (paper 000 §IV-B, REFERENCE §1.4, §2).
+"""ARMAR-4 keeping its balance while its upper body tracks a path (paper 000 §IV-B, docs/method.md §2.4, §4).
 
 The robot is ``armar4_legs`` of :mod:`mjx_pathtrack.robots`: a floating base (the pelvis link
 ``base``) standing on two flat soles on a floor, MJX physics with foot-floor contacts and few
@@ -13,13 +13,13 @@ solver iterations. The reference path covers the 18 upper-body joints (torso + t
 
 On top of :class:`~mjx_pathtrack.env.PathTrackingEnv` (through its ``task_step`` hook):
 
-* **observation** (``base_sensor=True``) adds 8 values (REFERENCE §2 item 12): the pelvis position
+* **observation** (``base_sensor=True``) adds 8 values (docs/method.md §4 item 9): the pelvis position
   relative to its start, normalised by ``0.2/sqrt(3)`` m (3); the pelvis orientation quaternion
   (w, x, y, z) with ``w >= 0`` (4); the z-axis tilt normalised over [0, 0.125 rad] (1). All clipped
-  to [-1, 1]. Deliberate difference: REFERENCE says the published code maps the quaternion from
+  to [-1, 1]. Deliberate difference: the published code maps the quaternion from
   [0, 1] to [-1, 1], which clips every negative component to -1 and so hides the direction of a
   small tilt; the components are already in [-1, 1], so we pass them as they are.
-* **reward** adds the balance terms of REFERENCE §1.4 (each ``(1 - min(1, x/x_max))**2``):
+* **reward** adds the balance terms of docs/method.md §2.4 (each ``(1 - min(1, x/x_max))**2``):
   pelvis displacement (0.2 m, weight 0.2), orientation ``arccos|q_w| 2/pi`` (0.5, 0.2), z-axis
   tilt (0.125 rad, 2.0) and the mean Cartesian distance of the two wrist target points, commanded
   pose on the moving pelvis vs. reference pose on the initial pelvis (0.4 m, 0.2).
@@ -56,13 +56,13 @@ LEGS = ("fixed", "controlled")
 #: fall thresholds: pelvis tilt [rad] and drop of the pelvis centre of mass [m]
 FALL_TILT = 0.52
 FALL_DROP = 0.2
-#: observation scales (REFERENCE §2 item 12): pelvis position [m], tilt [rad]
+#: observation scales (docs/method.md §4 item 9): pelvis position [m], tilt [rad]
 BASE_POS_SCALE = 0.2 / np.sqrt(3.0)
 TILT_SCALE = 0.125
 #: observation blocks the pelvis sensor adds (``base_sensor=True``), in order
 BASE_BLOCKS = (("pelvis_position", 3), ("pelvis_quaternion_wxyz", 4), ("pelvis_tilt", 1))
 BASE_OBS_SIZE = sum(size for _, size in BASE_BLOCKS)
-#: the papers' ARMAR-4 balancing nets (REFERENCE §1.4): alpha 2, no R_action, balance terms
+#: the papers' ARMAR-4 balancing nets (docs/method.md §2.4): alpha 2, no R_action, balance terms
 BALANCE_WEIGHTS = R.RewardWeights(alpha=2.0, max_deviation=0.9, mean_deviation=0.9, action=0.0,
                                   base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2)
 BALANCE_TERMS = ("base_pos", "base_orn", "tilt", "end_point")
@@ -208,7 +208,7 @@ class HumanoidBalanceEnv(PathTrackingEnv):
 
 
 def observation_size(n_next: int, legs: str = "fixed", base_sensor: bool = True) -> int:
-    """Observation size of the task (REFERENCE §2: 226 / 234 with fixed legs, 270 with controlled
+    """Observation size of the task (docs/method.md §4: 226 / 234 with fixed legs, 270 with controlled
     legs and the base sensor, for N = 8), without building the environment."""
     if legs not in LEGS:
         raise ValueError(f"legs must be one of {LEGS}, got {legs!r}")

@@ -61,7 +61,7 @@ class VelocityMaxConfig:
     init_spread: start positions uniform in ``centre +- init_spread * half range`` (0: at the
     centre; 0.5 by default, so that episodes differ and violation rates are rates); soft_threshold, soft_weight: the soft penalty (see :func:`soft_penalty`);
     hard_terminate: ``penalty_hard`` also ends the episode at a violation; jerk_factor: jerk
-    limit ``jerk_factor * 2 a_max / dt`` (REFERENCE §5.3)."""
+    limit ``jerk_factor * 2 a_max / dt`` (docs/limits.md §3)."""
 
     hz: float = 20.0
     mode: str = "safe"

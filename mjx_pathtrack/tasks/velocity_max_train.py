@@ -60,7 +60,7 @@ class VelocityTrainConfig:
     mean_init_scale: float = 0.01
     #: bound of the policy mean (training.TrainConfig.mean_clip), like the papers' tanh mean head;
     #: without it the 120/240 Hz policies drift to means far outside [-1, 1] and stop exploring
-    #: (README "Paper 001 experiments"); ``--mean-clip none`` turns it off
+    #: (docs/results.md "Paper 001 experiments"); ``--mean-clip none`` turns it off
     mean_clip: float | None = 1.0
     seed: int = 0
 
