@@ -113,6 +113,10 @@ POSITION_BISECTIONS = 14
 MARGIN = 2e-6
 #: relative velocity reserve of the planned stop in the position bound (see _safe_stop_peak)
 TAIL_VEL_MARGIN = 1e-4
+#: braking_acceleration holds a joint whose |v| <= this * V and |a| <= SETTLED_ACCELERATION * A
+#: (at rest up to float32 rounding)
+SETTLED_VELOCITY = 1e-6
+SETTLED_ACCELERATION = 1e-5
 
 
 # ---------------------------------------------------------------------------------------------
@@ -873,7 +877,16 @@ def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt,
     # undershoot); v < 0: the mirror image
     hardest_down = materialized(-_velocity_upper_bound(-v, -a, zero, dt, A, delta, 0.0))
     hardest_up = materialized(_velocity_upper_bound(v, a, zero, dt, A, delta, 0.0))
-    target = jnp.where(v > 0, hardest_down, jnp.where(v < 0, hardest_up, jnp.clip(zero, hardest_down, hardest_up)))
+    # at v = 0 the acceleration decides where the velocity goes (v = 0 with a = +1e-7 used to take
+    # the "keep v <= 0" bound, which no a1 can meet for the whole step: its fallback -A kicked the
+    # stopped joint to -A dt / 2 and back, two more steps and up to ~0.1 rad of extra motion)
+    rising = (v > 0) | ((v == 0) & (a > 0))
+    falling = (v < 0) | ((v == 0) & (a < 0))
+    target = jnp.where(rising, hardest_down, jnp.where(falling, hardest_up, zero))
+    # at rest up to rounding (the stop's last grid acceleration comes out a few ulps off zero):
+    # hold still
+    settled = (jnp.abs(v) <= SETTLED_VELOCITY * limits.vel) & (jnp.abs(a) <= SETTLED_ACCELERATION * A)
+    target = jnp.where(settled, zero, target)
     target = jnp.clip(target, jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A))
     a_min, a_max = safe_acceleration_range(limits, p, v, a, dt) if safe_range is None else safe_range
     return jnp.clip(target, a_min, a_max)

@@ -257,6 +257,35 @@ def test_braking_acceleration_stops_the_robot():
     assert np.all(np.abs(np.asarray(v)) < 0.01) and np.all(np.abs(np.asarray(a)) < 0.01 * IIWA_ACC + 1e-3)
 
 
+@pytest.mark.parametrize("jit", [True, False])
+def test_braking_comes_to_rest_within_the_fastest_stop_and_stays_there(jit):
+    """Batched random moving states (|v| < V, |a| < A, mid-range positions), jitted and eager:
+    the braking accelerations bring every joint to rest within ``V/A + 2A/J`` (+2 grid steps),
+    and a joint at rest is never kicked again. Regression: v = 0 with a = +4.8e-7 (what the last
+    grid step of a stop leaves after rounding) got -A and moved on for two more steps."""
+    dt = 0.1
+    lim = iiwa_limits(dt)
+    rng = np.random.default_rng(5)
+    B = 256 if jit else 16  # (eager calls are slow)
+    p = jnp.asarray(rng.uniform(-0.3, 0.3, (B, 7)) * IIWA_POS, jnp.float32)
+    v = jnp.asarray(rng.uniform(-1.0, 1.0, (B, 7)) * IIWA_VEL, jnp.float32)
+    a = jnp.asarray(rng.uniform(-1.0, 1.0, (B, 7)) * IIWA_ACC, jnp.float32)
+    brake = lambda p, v, a: L.braking_acceleration(lim, p, v, a, dt)  # noqa: E731
+    brake = jax.jit(brake) if jit else brake
+    steps = int(np.ceil(np.max(IIWA_VEL / IIWA_ACC + 2 * IIWA_ACC / np.asarray(lim.jerk)) / dt)) + 2
+    at_rest = np.zeros((B, 7), bool)
+    for _ in range(steps + 3):
+        a1 = brake(p, v, a)
+        p, v, _ = L.integrate(p, v, a, a1, dt, dt)
+        a = a1
+        moving = (np.abs(np.asarray(v)) > 1e-4) | (np.abs(np.asarray(a)) > 1e-3)
+        assert not np.any(at_rest & moving), "a joint at rest was set in motion again"
+        at_rest |= ~moving
+    assert at_rest.all()
+    kicked = L.braking_acceleration(lim, jnp.zeros(7), jnp.zeros(7), jnp.full(7, 4.7683716e-07), dt)
+    assert np.all(np.abs(np.asarray(kicked)) < 1e-5)
+
+
 # --- oracle: klimits 1.1.3, the papers' own C library ----------------------------------------
 
 @pytest.mark.parametrize("dt", [0.1, 0.05])
