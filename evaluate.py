@@ -39,6 +39,9 @@ def parse_args(argv=None):
                         help="count the path end as reached (and brake) this arc length before it, instead of the "
                              "training config's (0: the papers' rule); a deterministic policy can stall just short "
                              "of the end")
+    parser.add_argument("--end-braking", choices=("at_end", "predictive"), default=None,
+                        help="when braking at the path end starts, instead of the training config's: at_end (the "
+                             "papers: once the end is reached) or predictive (once the fastest stop would reach it)")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--jerk-optimum", action="store_true",
                         help="also the jerk-limited time-optimal duration of every episode (TOPP3 of copp-py, ~1 s "
@@ -70,6 +73,9 @@ def main(argv=None) -> int:
                 raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
             source = dataclasses.replace(source, config=dataclasses.replace(
                 source.config, terminate_deviation=args.terminate_deviation))
+        if args.end_braking is not None:
+            source = dataclasses.replace(source, config=dataclasses.replace(
+                source.config, end_braking=args.end_braking))
         if args.end_tolerance is not None:
             if not (args.end_tolerance >= 0 and args.end_tolerance < float("inf")):
                 raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
@@ -90,6 +96,7 @@ def main(argv=None) -> int:
             "seed": args.seed, "full_paths": args.full_paths,
             "actions": "sampled" if args.stochastic else "deterministic",
             "terminate_deviation": source.config.terminate_deviation, "end_tolerance": source.config.end_tolerance,
+            "end_braking": source.config.end_braking,
             "plot_episode": episode}
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
              f"{', sampled actions' if args.stochastic else ''})")

@@ -44,11 +44,11 @@ def _optional(kind):
 
 
 def parse_args(argv=None):
-    from mjx_pathtrack.env import KNOTS_FRAMES
+    from mjx_pathtrack.env import END_BRAKING, KNOTS_FRAMES
     from mjx_pathtrack.training import EXECUTORS, RECIPES, TASKS, TrainConfig, preset, recipe
 
     defaults = TrainConfig()
-    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES}
+    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "

@@ -40,6 +40,8 @@ Array = jax.Array
 
 #: how the observation shows the next knots (:class:`EnvConfig` ``knots_frame``)
 KNOTS_FRAMES = ("absolute", "relative")
+#: when braking at the end of the path starts (:class:`EnvConfig` ``end_braking``)
+END_BRAKING = ("at_end", "predictive")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +61,12 @@ class EnvConfig:
     end_tolerance [rad]: the end counts as reached (braking starts) once the reference position
     is within this arc length of the path end; 0 (the papers): only at the end itself. A
     deterministic policy can stall just short of the end (docs/results.md "Findings of earlier recipes").
+    end_braking: when braking towards the end starts: ``"at_end"`` (the papers): once the
+    reference position reaches the end (``end_tolerance`` before it); ``"predictive"``: as soon
+    as the fastest stop from the current state would carry the robot to the end, i.e. the
+    remaining arc length is at most the length of that stop (:meth:`PathTrackingEnv.stop_length`,
+    predicted without position limits). A policy that arrives at speed then stops at the end
+    instead of overshooting it by its braking distance; braking itself is the same.
     knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
     ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
     max_dis_between_knots``): same size, but the policy need not learn the subtraction (docs/results.md
@@ -84,8 +92,11 @@ class EnvConfig:
     adjustable: bool = False
     knots_frame: str = "absolute"
     end_tolerance: float = 0.0
+    end_braking: str = "at_end"
 
     def __post_init__(self):
+        if self.end_braking not in END_BRAKING:
+            raise ValueError(f"unknown end_braking {self.end_braking!r}; known: {', '.join(END_BRAKING)}")
         if self.knots_frame not in KNOTS_FRAMES:
             raise ValueError(f"unknown knots_frame {self.knots_frame!r}; known: {', '.join(KNOTS_FRAMES)}")
         if not (np.isfinite(self.end_tolerance) and self.end_tolerance >= 0.0):
@@ -276,7 +287,8 @@ class PathTrackingEnv(Env):
         terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
                                  d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
         steps = track.steps + 1
-        reached_end = self.end_reached(path, s1)
+        ahead = self.stop_length(p1, v1, a_next) if cfg.end_braking == "predictive" else 0.0
+        reached_end = self.end_reached(path, s1 + ahead)
         braking = track.braking | (reached_end & cfg.brake_at_end)
         new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
         task_terms, failed, task_metrics = self.task_step(track, new, sensors)
@@ -301,6 +313,32 @@ class PathTrackingEnv(Env):
     def end_reached(self, path: S.Path, s: Array) -> Array:
         """bool ``[]``: arc position ``s`` [rad] is at the end of ``path`` (within ``end_tolerance``)."""
         return s >= path.length - self.config.end_tolerance
+
+    def stop_length(self, p: Array, v: Array, a: Array) -> Array:
+        """Path-joint arc length [rad] ``[]`` of the fastest stop from ``(p, v, a) [n]``: the
+        braking accelerations (:func:`~mjx_pathtrack.limits.braking_acceleration`, jerk and
+        acceleration limits, position limits ignored) integrated over :attr:`stop_steps`
+        decision steps, as the polyline through the decision instants."""
+        lim, dt, pj = self.limits, self.config.dt, self.path_joints
+        free = (-lim.acc, lim.acc)
+
+        def step(carry, _):
+            p, v, a = carry
+            a1 = L.braking_acceleration(lim, p, v, a, dt, safe_range=free)
+            p1, v1, _ = L.integrate(p, v, a, a1, dt, dt)
+            return (p1, v1, a1), jnp.linalg.norm(p1[pj] - p[pj])
+
+        _, lengths = jax.lax.scan(step, (p, v, a), None, length=self.stop_steps)
+        return jnp.sum(lengths)
+
+    @property
+    def stop_steps(self) -> int:
+        """Decision steps that bound the fastest stop from any state within the limits: from
+        ``|v| <= V``, ``|a| <= A`` the acceleration reaches ``-A`` within ``2 A / J`` and the
+        velocity zero within ``V / A`` more (+2 steps for the grid)."""
+        lim = self.limits
+        worst = np.max(np.asarray(lim.vel) / np.asarray(lim.acc) + 2.0 * np.asarray(lim.acc) / np.asarray(lim.jerk))
+        return int(np.ceil(worst / self.config.dt)) + 2
 
     def task_step(self, before: TrackState, after: TrackState, sensors: dict[str, Array]
                   ) -> tuple[dict[str, Array], Array, dict[str, Array]]:

@@ -83,6 +83,7 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "dt": float(env.config.dt),
         "n_next": int(env.config.n_next),
         "knots_frame": env.config.knots_frame,
+        "end_braking": env.config.end_braking,
         "max_dis_between_knots": float(env.max_dis),
         "limits": {"pos_min": _finite_or_none(lim.pos_min), "pos_max": _finite_or_none(lim.pos_max),
                    "vel": _finite_or_none(lim.vel), "acc": _finite_or_none(lim.acc),

@@ -76,6 +76,19 @@ def noise_std(config, fraction):
     return jnp.exp(lo + (hi - lo) * jnp.clip(fraction, 0.0, 1.0))
 
 
+def learning_rate_scale(config, fraction):
+    """Factor [-] on the configured learning rate at ``fraction`` in [0, 1] of the training budget:
+    geometric from 1 to ``final_learning_rate / learning_rate`` (1 throughout if
+    ``final_learning_rate`` is None). ``fraction`` may be traced. A scheduled std makes each
+    update's KL grow as 1/std**2 late in training; lowering the step size with it keeps the late
+    updates as large as the early ones."""
+    final = getattr(config, "final_learning_rate", None)
+    if final is None:
+        return jnp.float32(1.0)
+    log_ratio = float(np.log(final / config.learning_rate))
+    return jnp.exp(log_ratio * jnp.clip(fraction, 0.0, 1.0)).astype(jnp.float32)
+
+
 def with_noise_std(policy_params, std):
     """Policy parameters whose (state-independent) std is ``std`` (scalar or ``[n]``)."""
     inner = dict(policy_params["params"])
@@ -99,10 +112,11 @@ class Core:
     """The pure pieces of one PPO configuration on one environment.
 
     ``init(seed, weights, n_envs, device) -> Learner`` (``device``: index of this device's share,
-    folded into the environment and learner keys); ``iteration(weights, learner, std=None) ->
-    (learner, metrics)`` one training iteration; ``weights [3]``: the reward weights (alpha,
-    beta, action), possibly traced; ``std``: the policy's std for this iteration when it is set
-    by a schedule (:func:`noise_std`) instead of learned. ``make_policy``: Brax's inference-function factory;
+    folded into the environment and learner keys); ``iteration(weights, learner, std=None,
+    lr_scale=1.0) -> (learner, metrics)`` one training iteration; ``weights [3]``: the reward
+    weights (alpha, beta, action), possibly traced; ``std``: the policy's std for this iteration
+    when it is set by a schedule (:func:`noise_std`) instead of learned; ``lr_scale``: factor on
+    the learning rate (:func:`learning_rate_scale`). ``make_policy``: Brax's inference-function factory;
     ``steps_per_iteration``: environment steps of one iteration over all devices."""
 
     config: Any
@@ -168,7 +182,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
     def scheduled(params, std):
         return params if std is None else params.replace(policy=with_noise_std(params.policy, std))
 
-    def iteration(weights, learner: Learner, std=None):
+    def iteration(weights, learner: Learner, std=None, lr_scale=1.0):
         wenv = member_env(weights)
         key_sgd, key_unroll, new_key = jax.random.split(learner.key, 3)
         learner = learner._replace(params=scheduled(learner.params, std))
@@ -195,6 +209,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
             if axis_name is not None:
                 grads = jax.lax.pmean(grads, axis_name)
             updates, opt_state = optimizer.update(grads, opt_state)
+            updates = jax.tree.map(lambda u: u * lr_scale, updates)  # Adam: the same as scaling the rate
             return (opt_state, optax.apply_updates(params, updates), key), metrics
 
         def sgd(carry, _):
@@ -222,9 +237,10 @@ def build(config, env, axis_name: str | None = None) -> Core:
 
 
 def scheduled_iteration(core: Core, weights, learner: Learner, fraction):
-    """One training iteration at ``fraction`` in [0, 1] of the training budget (the noise-std
-    schedule's position; ignored when the std is learned). Pure: jit, vmap or pmap it."""
-    return core.iteration(weights, learner, noise_std(core.config, fraction))
+    """One training iteration at ``fraction`` in [0, 1] of the training budget (the position in
+    the noise-std and learning-rate schedules; each ignored when not configured). Pure: jit,
+    vmap or pmap it."""
+    return core.iteration(weights, learner, noise_std(core.config, fraction), learning_rate_scale(core.config, fraction))
 
 
 def summarize_iterations(metrics) -> dict:

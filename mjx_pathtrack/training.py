@@ -76,11 +76,16 @@ class TrainConfig:
     terminate_deviation: float = 0.25
     #: [rad] the end counts as reached this arc length before it (env.EnvConfig.end_tolerance)
     end_tolerance: float = 0.0
+    #: when braking at the end starts: "at_end" (the papers) or "predictive" (env.EnvConfig.end_braking)
+    end_braking: str = "at_end"
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
     num_timesteps: int = 9_600_000
     learning_rate: float = 3e-4
+    #: None: a constant learning rate; a number: geometric from ``learning_rate`` at the start to
+    #: this value at the end of training (ppo.learning_rate_scale)
+    final_learning_rate: float | None = None
     entropy_cost: float = 1e-3
     discounting: float = 0.99
     gae_lambda: float = 0.95
@@ -119,6 +124,7 @@ class TrainConfig:
 
             weights = humanoid_balance.balance_weights(self.balance_reward, weights)
         return EnvConfig(dt=self.dt, n_next=self.n_next, knots_frame=self.knots_frame, end_tolerance=self.end_tolerance,
+                         end_braking=self.end_braking,
                          duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
                          deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
@@ -294,9 +300,10 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         raise ConfigError(f"--{option.replace('_', '-')}: {message}")
 
     choices = {"executor": EXECUTORS, "task": TASKS}
-    from mjx_pathtrack.env import KNOTS_FRAMES
+    from mjx_pathtrack.env import END_BRAKING, KNOTS_FRAMES
 
     choices["knots_frame"] = KNOTS_FRAMES
+    choices["end_braking"] = END_BRAKING
     for name, allowed in choices.items():
         if getattr(c, name) not in allowed:
             fail(name, f"{getattr(c, name)!r} is not one of {', '.join(allowed)}")
@@ -322,6 +329,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
             fail(name, f"must be in ({lo:g}, {hi:g}], got {value}")
     if c.final_noise_std is not None and not (np.isfinite(c.final_noise_std) and c.final_noise_std > 0):
         fail("final_noise_std", f"must be a finite number > 0 (or unset), got {c.final_noise_std}")
+    if c.final_learning_rate is not None and not (np.isfinite(c.final_learning_rate) and c.final_learning_rate > 0):
+        fail("final_learning_rate", f"must be a finite number > 0 (or unset), got {c.final_learning_rate}")
     if c.mean_clip is not None and not (np.isfinite(c.mean_clip) and c.mean_clip > 0):
         fail("mean_clip", f"must be a finite number > 0 (or unset), got {c.mean_clip}")
     for name in ("num_envs", "num_timesteps", "unroll_length", "batch_size", "num_minibatches",

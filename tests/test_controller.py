@@ -305,22 +305,27 @@ def test_policy_faults_brake_instead_of_raising():
         assert audit.worst <= REL
 
 
-@pytest.mark.parametrize("knots_frame", ["absolute", "relative"])
-def test_observation_and_step_equal_the_environment(knots_frame):
-    """The tracker feeds the policy the environment's observation and moves like env.step."""
+@pytest.mark.parametrize("knots_frame,end_braking", [("absolute", "at_end"), ("relative", "at_end"),
+                                                     ("relative", "predictive")])
+def test_observation_and_step_equal_the_environment(knots_frame, end_braking):
+    """The tracker feeds the policy the environment's observation and moves like env.step, to
+    the stop at the end of the path (braking by the same rule)."""
     knots = straight_path(np.zeros(N), np.array([0.8, -0.5, 0.6, 0.4, -0.3, 0.2, 0.9]), 9)
-    t = tracker(steering_policy, knots_frame=knots_frame)
+    t = tracker(steering_policy, knots_frame=knots_frame, end_braking=end_braking)
     t.set_path(knots[1:])
     cfg = EnvConfig(dt=DT, n_next=N_NEXT, substeps=20, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
-                    adjustable=True, knots_frame=knots_frame)
+                    adjustable=True, knots_frame=knots_frame, end_braking=end_braking)
     env = PathTrackingEnv(LIM, S.stack_paths([S.make_path(knots, t.max_knots)]), MAX_DIS, cfg)
     state = env.reset(jax.random.PRNGKey(0))
     np.testing.assert_allclose(t.observation(), np.asarray(state.obs), atol=1e-6)
     step = jax.jit(env.step)
-    for _ in range(5):
+    for _ in range(25):
         action = steering_policy(t.observation())
         state = step(state, jnp.asarray(action, jnp.float32))
-        t.step()
+        out = t.step()
+        assert (out.status is not Status.TRACKING) == bool(state.pipeline_state.braking)
+        if out.status is Status.STOPPED:
+            break
         np.testing.assert_allclose(t.position, np.asarray(state.pipeline_state.p), atol=1e-6)
         np.testing.assert_allclose(t.s, float(state.pipeline_state.s), atol=1e-5)
         np.testing.assert_allclose(t.observation(), np.asarray(state.obs), atol=1e-5)
@@ -408,6 +413,7 @@ def test_exported_policy_drives_the_tracker_within_limits(exported):
     t = OnlineTracker(exported, np.zeros(N), controller_dt=1 / 200, max_knots=12)
     assert t.dt == DT and t.substeps == 20 and t.observation_size == exported.observation_size
     assert exported.manifest["knots_frame"] == "absolute" and t.env.config.knots_frame == "absolute"
+    assert exported.manifest["end_braking"] == "at_end" and t.env.config.end_braking == "at_end"
     np.testing.assert_array_equal(np.asarray(t.limits.jerk), np.asarray(LIM.jerk))
     audit = Auditor(t)
     t.set_path(straight_path(np.zeros(N), np.full(N, 0.8), 6)[1:])

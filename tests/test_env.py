@@ -187,6 +187,60 @@ def test_end_tolerance_starts_braking_before_the_end():
             EnvConfig(end_tolerance=bad)
 
 
+def _run_to_stop(env, action):
+    state = env.reset(jax.random.PRNGKey(0))
+    step = jax.jit(env.step)
+    for _ in range(int(state.pipeline_state.max_steps)):
+        state = step(state, action)
+        if state.done:
+            break
+    return state
+
+
+def test_predictive_braking_stops_at_the_end_instead_of_overshooting_it():
+    """EnvConfig.end_braking="predictive": full speed along a straight path, braking starts when
+    the fastest stop reaches the end, and the robot comes to rest at the end knot (within the
+    position covered by one decision step at the last speed); the papers' rule overshoots by the
+    braking distance. The stop is never later, and ends stopped (done, at rest)."""
+    action = jnp.zeros(7).at[0].set(1.0)
+    final = {}
+    for rule in ("at_end", "predictive"):
+        cfg = EnvConfig(start_range=(0.0, 0.0), min_fraction=1.0, terminate_deviation=None, end_braking=rule)
+        env = PathTrackingEnv(iiwa.joint_limits(DT), line_path(2.0), 0.5, cfg)
+        state = _run_to_stop(env, action)
+        track = state.pipeline_state
+        assert bool(state.done) and float(jnp.max(jnp.abs(track.v))) < 0.01
+        final[rule] = (float(track.p[0]), int(track.steps))
+    v, A = float(iiwa.joint_limits(DT).vel[0]), float(iiwa.joint_limits(DT).acc[0])
+    assert final["at_end"][0] - 2.0 > 0.5 * v ** 2 / A * 0.8  # overshoot ~ the braking distance
+    assert abs(final["predictive"][0] - 2.0) < v * DT  # stops at the end, up to one step's travel
+    assert abs(final["predictive"][0] - 2.0) < 0.5 * (final["at_end"][0] - 2.0)
+    assert final["predictive"][1] <= final["at_end"][1]
+    with pytest.raises(ValueError, match="end_braking"):
+        EnvConfig(end_braking="late")
+
+
+def test_stop_length_is_the_length_of_the_braking_that_follows(env):
+    """PathTrackingEnv.stop_length of a moving state (away from position limits) equals the
+    path-joint length of the braking the environment then executes, decision step by decision
+    step, and that braking ends at rest within ``stop_steps``."""
+    lim = env.limits
+    key = jax.random.PRNGKey(3)
+    p = jnp.zeros(7)
+    v = 0.9 * lim.vel * jax.random.uniform(key, (7,), minval=-1.0, maxval=1.0)
+    a = jnp.zeros(7)
+    predicted = float(jax.jit(env.stop_length)(p, v, a))
+    total = 0.0
+    for _ in range(env.stop_steps):
+        a1 = L.braking_acceleration(lim, p, v, a, DT)
+        p1, v, _ = L.integrate(p, v, a, a1, DT, DT)
+        total += float(jnp.linalg.norm(p1 - p))
+        p, a = p1, a1
+    assert float(jnp.max(jnp.abs(v))) < 1e-4 and float(jnp.max(jnp.abs(a))) < 1e-3
+    assert predicted == pytest.approx(total, rel=1e-5)
+    assert predicted > 0.1
+
+
 def test_bad_construction_errors():
     paths = random_walk_paths(n_paths=2)
     with pytest.raises(ValueError, match="path joints"):

@@ -13,9 +13,10 @@ import pytest
 
 import mjx_pathtrack  # noqa: F401
 import jax
+import jax.numpy as jnp
 
 from mjx_pathtrack.export import load_policy
-from mjx_pathtrack.training import TrainConfig, json_safe, latest_checkpoint, train
+from mjx_pathtrack.training import TrainConfig, json_safe, latest_checkpoint, make_env, train
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = dict(num_envs=8, num_timesteps=640, unroll_length=5, batch_size=8, num_minibatches=2,
@@ -180,6 +181,28 @@ def test_noise_std_schedule_is_geometric_from_the_initial_to_the_final_std():
     assert ppo.noise_std(TrainConfig(final_noise_std=None), 0.3) is None  # learned std: no schedule
 
 
+def test_learning_rate_schedule_is_geometric_and_scales_the_update():
+    """``final_learning_rate``: geometric from the rate to the final one (constant when unset); the
+    iteration's step scales with it: at scale 0 the parameters do not move, at 1 they do."""
+    from mjx_pathtrack import ppo
+
+    config = TrainConfig(learning_rate=1e-3, final_learning_rate=1e-5)
+    scales = [float(ppo.learning_rate_scale(config, f)) for f in (0.0, 0.5, 1.0, 1.5)]
+    np.testing.assert_allclose(scales, [1.0, 0.1, 0.01, 0.01], rtol=1e-5)
+    assert float(ppo.learning_rate_scale(TrainConfig(), 0.7)) == 1.0
+
+    tiny = TrainConfig(**{**TINY, "final_noise_std": None})
+    core = ppo.build(tiny, make_env(tiny, "train"))
+    weights = jnp.asarray([tiny.alpha, tiny.beta, tiny.action_reward], jnp.float32)
+    learner = core.init(0, weights, tiny.num_envs)
+    step = jax.jit(lambda learner, scale: core.iteration(weights, learner, None, scale)[0].params)
+    frozen, moved = step(learner, jnp.float32(0.0)), step(learner, jnp.float32(1.0))
+    same = jax.tree.map(lambda a, b: bool(np.array_equal(a, b)), frozen, learner.params)
+    assert all(jax.tree.leaves(same))
+    changed = jax.tree.map(lambda a, b: bool(np.array_equal(a, b)), moved, learner.params)
+    assert not all(jax.tree.leaves(changed))
+
+
 def test_a_scheduled_std_is_not_learned_and_ends_at_the_schedule(tmp_path):
     """The std the run ends with is the schedule's value at the start of the last iteration (not
     what Adam would have made of it), in the exported policy's parameters too."""
@@ -304,6 +327,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     (["--executor", "mjx", "--dt", "0.11"], "--dt: 0.11 s must be a whole multiple of the physics step"),
     (["--gae-lambda", "1.5"], "--gae-lambda: must be in"),
     (["--final-noise-std", "0"], "--final-noise-std: must be a finite number > 0"),
+    (["--final-learning-rate", "0"], "--final-learning-rate: must be a finite number > 0"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
     import train as cli
