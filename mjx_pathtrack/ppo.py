@@ -82,10 +82,9 @@ def learning_rate_scale(config, fraction):
     ``final_learning_rate`` is None). ``fraction`` may be traced. A scheduled std makes each
     update's KL grow as 1/std**2 late in training; lowering the step size with it keeps the late
     updates as large as the early ones."""
-    final = getattr(config, "final_learning_rate", None)
-    if final is None:
+    if config.final_learning_rate is None:
         return jnp.float32(1.0)
-    log_ratio = float(np.log(final / config.learning_rate))
+    log_ratio = float(np.log(config.final_learning_rate / config.learning_rate))
     return jnp.exp(log_ratio * jnp.clip(fraction, 0.0, 1.0)).astype(jnp.float32)
 
 
