@@ -340,6 +340,22 @@ class PathTrackingEnv(Env):
         worst = np.max(np.asarray(lim.vel) / np.asarray(lim.acc) + 2.0 * np.asarray(lim.acc) / np.asarray(lim.jerk))
         return int(np.ceil(worst / self.config.dt)) + 2
 
+    #: values of :meth:`critic_features`
+    CRITIC_FEATURES = ("budget_left", "path_left", "braking")
+
+    def critic_features(self, track: TrackState) -> Array:
+        """What the return depends on but the observation does not show, for a value network that
+        sees more than the policy (``TrainConfig.privileged_critic``, training only):
+        ``[budget_left, path_left, braking]`` ``[3]`` float32. ``budget_left``: decision steps
+        left in the time budget over :meth:`EnvConfig.max_episode_steps` [-] (the stop reward is
+        multiplied by them); ``path_left``: arc length from ``s`` to the path end over ``N *
+        max_dis_between_knots`` [-] (beyond the shown knots); ``braking``: 1 while braking at the end."""
+        path = self.reference(track)
+        horizon = float(self.config.max_episode_steps())
+        return jnp.stack([(track.max_steps - track.steps).astype(jnp.float32) / horizon,
+                          (path.length - track.s) / (self.config.n_next * self.max_dis),
+                          track.braking.astype(jnp.float32)])
+
     def task_step(self, before: TrackState, after: TrackState, sensors: dict[str, Array]
                   ) -> tuple[dict[str, Array], Array, dict[str, Array]]:
         """Hook for tasks with sensor feedback (:mod:`mjx_pathtrack.tasks`), called once per step

@@ -31,10 +31,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack.wrappers import wrap_for_training
+from mjx_pathtrack.wrappers import CriticFeatures, wrap_for_training
 
 #: name of the device axis under ``jax.pmap``
 DEVICE_AXIS = "devices"
+
+
+#: number of extra inputs of a privileged value network (``TrainConfig.privileged_critic``;
+#: :meth:`mjx_pathtrack.env.PathTrackingEnv.critic_features`)
+CRITIC_FEATURES = 3
 
 
 def networks(config):
@@ -42,18 +47,38 @@ def networks(config):
     MLPs (``policy_layers``, ``value_layers``, swish), a Gaussian policy whose samples the
     environment clips to [-1, 1], a learned state-independent log-std starting at
     ``init_noise_std``, a mean head initialised near zero (``mean_init_scale``; the initial
-    mean action is ~0, the middle of every safe range), optionally bounded (``mean_clip``)."""
+    mean action is ~0, the middle of every safe range), optionally bounded (``mean_clip``).
+
+    The factory's ``observation_size`` is the policy's observation. With
+    ``config.privileged_critic`` the value network takes :data:`CRITIC_FEATURES` more inputs
+    (:class:`~mjx_pathtrack.wrappers.CriticFeatures`), the observation statistics cover all of
+    them, and the policy normalises and reads only the first ``observation_size``: the same
+    parameters then act on the plain observation (evaluation, export) and on the extended one
+    (training)."""
+    from brax.training import networks as brax_nets
     from brax.training.agents.ppo import networks as brax_networks
 
-    return functools.partial(brax_networks.make_ppo_networks,
-                             policy_hidden_layer_sizes=config.policy_layers,
-                             value_hidden_layer_sizes=config.value_layers,
-                             distribution_type="normal", noise_std_type="log",
-                             init_noise_std=config.init_noise_std,
-                             mean_clip_scale=config.mean_clip,
-                             mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
-                             mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
-                                                          distribution="truncated_normal"))
+    layers = dict(policy_hidden_layer_sizes=config.policy_layers, value_hidden_layer_sizes=config.value_layers,
+                  distribution_type="normal", noise_std_type="log", init_noise_std=config.init_noise_std,
+                  mean_clip_scale=config.mean_clip, mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
+                  mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
+                                               distribution="truncated_normal"))
+    if not getattr(config, "privileged_critic", False):
+        return functools.partial(brax_networks.make_ppo_networks, **layers)
+
+    def make(observation_size: int, action_size: int, preprocess_observations_fn):
+        size = int(observation_size)
+
+        def policy_preprocess(obs, stats):  # the running statistics of the first ``size`` inputs
+            return (obs[..., :size] - stats.mean[:size]) / stats.std[:size]
+
+        policy = brax_networks.make_ppo_networks(size, action_size, policy_preprocess, **layers)
+        value = brax_nets.make_value_network(size + CRITIC_FEATURES, preprocess_observations_fn,
+                                             hidden_layer_sizes=config.value_layers, activation=jax.nn.swish)
+        return brax_networks.PPONetworks(policy_network=policy.policy_network, value_network=value,
+                                         parametric_action_distribution=policy.parametric_action_distribution)
+
+    return make
 
 
 class Learner(NamedTuple):
@@ -153,6 +178,8 @@ def build(config, env, axis_name: str | None = None) -> Core:
     check_batch(c)
     episode_length = c.env_config().max_episode_steps() + 1
     network = networks(c)(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
+    extend = getattr(c, "privileged_critic", False)
+    obs_size = env.observation_size + (CRITIC_FEATURES if extend else 0)
     make_policy = brax_ppo_networks.make_inference_fn(network)
     optimizer = optax.adam(learning_rate=c.learning_rate)
     loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=network, entropy_cost=c.entropy_cost,
@@ -161,7 +188,8 @@ def build(config, env, axis_name: str | None = None) -> Core:
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
     def member_env(weights):
-        return wrap_for_training(with_reward_weights(env, weights[0], weights[1], weights[2]), episode_length)
+        member = with_reward_weights(env, weights[0], weights[1], weights[2])
+        return wrap_for_training(CriticFeatures(member) if extend else member, episode_length)
 
     def init(seed, weights, n_envs: int, device=0) -> Learner:
         key = jax.random.PRNGKey(seed)
@@ -172,7 +200,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
         params = ppo_losses.PPONetworkParams(policy=network.policy_network.init(key_policy),
                                              value=network.value_network.init(key_value))
         env_state = member_env(weights).reset(jax.random.split(key_env, n_envs))
-        obs_spec = jax.ShapeDtypeStruct((env.observation_size,), jnp.float32)
+        obs_spec = jax.ShapeDtypeStruct((obs_size,), jnp.float32)
         learner = Learner(optimizer.init(params), params, running_statistics.init_state(obs_spec), env_state, local_key)
         # strong types throughout (Brax's std parameter starts weakly typed): otherwise the first
         # iterations see other input types than the later ones and compile up to three times

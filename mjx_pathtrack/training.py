@@ -76,16 +76,18 @@ class TrainConfig:
     terminate_deviation: float = 0.25
     #: [rad] the end counts as reached this arc length before it (env.EnvConfig.end_tolerance)
     end_tolerance: float = 0.0
-    #: when braking at the end starts: "at_end" (the papers) or "predictive" (env.EnvConfig.end_braking)
-    end_braking: str = "at_end"
+    #: when braking at the end starts: "at_end" (the papers) or "predictive" (env.EnvConfig.end_braking;
+    #: our default: the robot stops at the end knot instead of overshooting it, docs/results.md "Learning recipe")
+    end_braking: str = "predictive"
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
     num_timesteps: int = 9_600_000
     learning_rate: float = 3e-4
     #: None: a constant learning rate; a number: geometric from ``learning_rate`` at the start to
-    #: this value at the end of training (ppo.learning_rate_scale)
-    final_learning_rate: float | None = None
+    #: this value at the end of training (ppo.learning_rate_scale): with the shrinking std the
+    #: updates would otherwise grow (KL ~ 1/std**2) and break the policy late in training
+    final_learning_rate: float | None = 3e-5
     entropy_cost: float = 1e-3
     discounting: float = 0.99
     gae_lambda: float = 0.95
@@ -108,6 +110,12 @@ class TrainConfig:
     #: papers' tanh mean head (docs/training.md §1); None: an unbounded mean
     mean_clip: float | None = None
     seed: int = 0
+    #: the value network also sees what the return depends on but the policy's observation does
+    #: not show: the steps left in the time budget, the path length left, braking
+    #: (env.PathTrackingEnv.critic_features; training only: the policy and its export are unchanged).
+    #: The stop reward is multiplied by the steps left in the budget, which the policy's observation
+    #: does not show; a critic that sees them learns far cleaner advantages (docs/results.md "Learning recipe")
+    privileged_critic: bool = True
     task: str = "tracking"
     ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
     #: regenerate the train split with this many paths (deterministic, into <run>/data) when the
@@ -137,6 +145,11 @@ class TrainConfig:
         data.setdefault("knots_frame", "absolute")
         # ... and learned their policy std (the default since is a schedule)
         data.setdefault("final_noise_std", None)
+        # ... and, before these options existed, braked at the end, kept the learning rate and had
+        # a value network that saw the policy's observation only
+        data.setdefault("end_braking", "at_end")
+        data.setdefault("final_learning_rate", None)
+        data.setdefault("privileged_critic", False)
         for key in ("policy_layers", "value_layers"):
             if key in data:
                 data[key] = tuple(data[key])

@@ -43,6 +43,26 @@ class FreshAutoResetWrapper(Wrapper):
         return state.replace(pipeline_state=pipeline_state, obs=pick(fresh.obs, state.obs))
 
 
+class CriticFeatures(Wrapper):
+    """Appends :meth:`~mjx_pathtrack.env.PathTrackingEnv.critic_features` to the observation
+    (unbatched environment, innermost wrapper): ``[obs_size + 3]``. For training with a value
+    network that sees them (:func:`mjx_pathtrack.ppo.networks`); the policy reads only the
+    first ``obs_size`` entries, so evaluation, export and deployment see the plain observation."""
+
+    @property
+    def observation_size(self) -> int:
+        return self.env.observation_size + len(self.env.CRITIC_FEATURES)
+
+    def _extend(self, state: State) -> State:
+        return state.replace(obs=jnp.concatenate([state.obs, self.env.critic_features(state.pipeline_state)]))
+
+    def reset(self, rng: jax.Array) -> State:
+        return self._extend(self.env.reset(rng))
+
+    def step(self, state: State, action: jax.Array) -> State:
+        return self._extend(self.env.step(state, action))
+
+
 def wrap_for_training(env: Env, episode_length: int = 1000, action_repeat: int = 1,
                       randomization_fn=None) -> Env:
     """``VmapWrapper`` + ``EpisodeWrapper`` + :class:`FreshAutoResetWrapper` (the signature of

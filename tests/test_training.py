@@ -134,6 +134,12 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert TrainConfig.from_json('{"robot": "iiwa"}').final_noise_std is None  # ... and learned their std
     with pytest.raises(SystemExit):
         cli.parse_args(["--knots-frame", "polar"])
+    # a yes/no option is a flag pair, not a value ("--privileged-critic False" would be true)
+    assert cli.parse_args(["--privileged-critic"])[1].privileged_critic is True
+    assert cli.parse_args(["--privileged-critic", "--no-privileged-critic"])[1].privileged_critic is False
+    assert TrainConfig.from_json('{"robot": "iiwa"}').privileged_critic is False
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--privileged-critic", "False"])
 
 
 def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
@@ -172,6 +178,83 @@ def test_mean_clip_bounds_the_policy_mean():
     np.testing.assert_allclose(means[1.0], means[None] / (1.0 + np.abs(means[None])), rtol=1e-5, atol=1e-6)
 
 
+def test_a_privileged_value_network_sees_the_critic_features_and_the_policy_does_not():
+    """``privileged_critic``: the policy's action is the same for the plain observation and for
+    any critic features appended to it, and uses only the statistics of the plain part; the
+    value network's input has the 3 features more and its value depends on them."""
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    from mjx_pathtrack import ppo
+    from mjx_pathtrack.training import ppo_networks
+
+    config = TrainConfig(policy_layers=(16,), value_layers=(8,), mean_init_scale=1.0, privileged_critic=True)
+    nets = ppo_networks(config)(10, 3, preprocess_observations_fn=running_statistics.normalize)
+    k = jax.random.split(jax.random.PRNGKey(2), 4)
+    batch = jax.random.uniform(k[0], (64, 10 + ppo.CRITIC_FEATURES), minval=-1, maxval=1) * 3.0 + 0.5
+    norm = running_statistics.update(running_statistics.init_state(specs.Array((13,), np.dtype("float32"))), batch)
+    params = (norm, nets.policy_network.init(k[1]), nets.value_network.init(k[2]))
+    policy = ppo_nets.make_inference_fn(nets)(params, deterministic=True)
+    plain = np.asarray(policy(batch[:, :10], None)[0])
+    np.testing.assert_array_equal(plain, np.asarray(policy(batch, None)[0]))
+    other = batch.at[:, 10:].set(jax.random.normal(k[3], (64, 3)) * 5.0)
+    np.testing.assert_array_equal(plain, np.asarray(policy(other, None)[0]))
+    # the policy normalises with the statistics of its own 10 inputs: the same as a plain network
+    plain_nets = ppo_networks(TrainConfig(policy_layers=(16,), value_layers=(8,), mean_init_scale=1.0))(
+        10, 3, preprocess_observations_fn=running_statistics.normalize)
+    norm10 = running_statistics.update(running_statistics.init_state(specs.Array((10,), np.dtype("float32"))),
+                                       batch[:, :10])
+    reference = ppo_nets.make_inference_fn(plain_nets)((norm10, params[1]), deterministic=True)(batch[:, :10], None)[0]
+    np.testing.assert_allclose(plain, np.asarray(reference), rtol=1e-5, atol=1e-6)
+    value = nets.value_network.apply(norm, params[2], batch)
+    assert value.shape == (64,)
+    assert not np.allclose(np.asarray(value), np.asarray(nets.value_network.apply(norm, params[2], other)))
+    with pytest.raises(Exception):  # the value network needs the features
+        nets.value_network.apply(norm, params[2], batch[:, :10])
+
+
+def test_critic_features_show_the_budget_the_path_left_and_braking():
+    from mjx_pathtrack.wrappers import CriticFeatures
+
+    config = TrainConfig(**TINY)
+    env = make_env(config, "train")
+    wrapped = CriticFeatures(env)
+    assert wrapped.observation_size == env.observation_size + 3
+    state = jax.jit(wrapped.reset)(jax.random.PRNGKey(3))
+    track = state.pipeline_state
+    np.testing.assert_array_equal(np.asarray(state.obs[:env.observation_size]), np.asarray(jax.jit(env.observe)(track)))
+    path = env.reference(track)
+    horizon = env.config.max_episode_steps()
+    np.testing.assert_allclose(np.asarray(state.obs[env.observation_size:]),
+                               [float(track.max_steps) / horizon,
+                                float(path.length - track.s) / (env.config.n_next * env.max_dis), 0.0], rtol=1e-6)
+    step = jax.jit(wrapped.step)
+    for _ in range(3):
+        state = step(state, jnp.ones(env.action_size))
+    budget_left = state.obs[env.observation_size]
+    assert float(budget_left) == pytest.approx(float(track.max_steps - 3) / horizon, rel=1e-6)
+    assert float(state.obs[env.observation_size + 1]) < float(path.length - track.s) / (env.config.n_next * env.max_dis)
+    braking = state.pipeline_state._replace(braking=jnp.ones((), bool))
+    assert float(env.critic_features(braking)[2]) == 1.0
+
+
+def test_a_run_with_a_privileged_critic_exports_the_plain_policy(tmp_path):
+    """Trained with the critic features, the run's parameters and its export act on the plain
+    94-value observation and agree."""
+    from mjx_pathtrack.evaluate_run import load_policy_source
+
+    config = TrainConfig(**{**TINY, "privileged_critic": True})
+    _, params, report = train(config, tmp_path / "run", verbose=False)
+    assert np.asarray(params[0].mean).shape == (94 + 3,)  # statistics of the critic's input
+    assert np.isfinite(report["after"]["return"])
+    exported = load_policy(tmp_path / "run" / "export")
+    assert exported.observation_size == 94
+    obs = np.asarray(jax.random.uniform(jax.random.PRNGKey(5), (16, 94), minval=-1, maxval=1))
+    from_run = load_policy_source(str(tmp_path / "run")).policy
+    actions = np.clip(np.asarray(from_run(jnp.asarray(obs), jax.random.PRNGKey(0))), -1, 1)
+    np.testing.assert_allclose(actions, exported(obs), rtol=1e-5, atol=1e-6)
+
+
 def test_noise_std_schedule_is_geometric_from_the_initial_to_the_final_std():
     from mjx_pathtrack import ppo
 
@@ -189,7 +272,7 @@ def test_learning_rate_schedule_is_geometric_and_scales_the_update():
     config = TrainConfig(learning_rate=1e-3, final_learning_rate=1e-5)
     scales = [float(ppo.learning_rate_scale(config, f)) for f in (0.0, 0.5, 1.0, 1.5)]
     np.testing.assert_allclose(scales, [1.0, 0.1, 0.01, 0.01], rtol=1e-5)
-    assert float(ppo.learning_rate_scale(TrainConfig(), 0.7)) == 1.0
+    assert float(ppo.learning_rate_scale(TrainConfig(final_learning_rate=None), 0.7)) == 1.0
 
     tiny = TrainConfig(**{**TINY, "final_noise_std": None})
     core = ppo.build(tiny, make_env(tiny, "train"))
