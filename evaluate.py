@@ -14,7 +14,9 @@ import argparse
 import dataclasses
 import sys
 
-import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 
 
 def parse_args(argv=None):

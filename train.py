@@ -24,7 +24,7 @@ import dataclasses
 import os
 import sys
 
-import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
+import mjx_pathtrack
 
 
 def task_presets() -> dict[str, dict]:
@@ -78,7 +78,9 @@ def parse_args(argv=None):
     for field in dataclasses.fields(TrainConfig):
         value = getattr(defaults, field.name)
         flag = "--" + field.name.replace("_", "-")
-        if isinstance(value, tuple):
+        if isinstance(value, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
+        elif isinstance(value, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=list(value))
         elif value is None or "None" in str(field.type):  # optional: a number (``float | None``) or a path
             parser.add_argument(flag, type=_optional(float if "float" in str(field.type) else str), default=value,
@@ -121,14 +123,11 @@ def use_compilation_cache(directory: str | None) -> None:
 
 
 def main(argv=None) -> int:
-    args, config = parse_args(argv)
+    args, config = parse_args(argv)  # (imports jax, but its backend starts later)
+    # the CPU flag batched MJX needs; without MJX physics XLA's default CPU fusion emitters train
+    # faster (mjx_pathtrack/_xla.py); a user's own flag is kept
+    mjx_pathtrack.prepare_xla(mjx_physics=config.executor != "kinematic" or bool(args.sweep))
     use_compilation_cache(args.compilation_cache)
-    if config.executor == "kinematic" and not args.sweep:
-        # No MJX physics in this run: XLA's default CPU fusion emitters train faster than the
-        # package's MJX fix (mjx_pathtrack/_xla.py); a user's own flag is kept.
-        from mjx_pathtrack import _xla
-
-        _xla.drop_cpu_fix()
     if args.sweep:
         from mjx_pathtrack import sweep
 

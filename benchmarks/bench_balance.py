@@ -20,7 +20,9 @@ import argparse
 import os
 import time
 
-import mjx_pathtrack  # noqa: F401  (XLA flags before jax starts)
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import numpy as np
 

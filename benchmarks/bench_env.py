@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import time
 
-import mjx_pathtrack  # noqa: F401  (XLA flags before jax starts)
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 

@@ -11,7 +11,9 @@ import time
 
 import numpy as np
 
-import mjx_pathtrack  # noqa: F401  (sets XLA flags before jax starts)
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 
 from mjx_pathtrack import iiwa

@@ -4,7 +4,7 @@ Run: python benchmarks/bench_mjx.py [--batch 1024] [--steps 240] [--robots iiwa 
      [--no-flag-steps 1]
 
 Each robot is measured with the XLA CPU flag ``--xla_cpu_use_fusion_emitters=false`` (set by
-``import mjx_pathtrack``) and, in a subprocess with ``MJX_PATHTRACK_NO_XLA_FLAGS=1``, without it
+``mjx_pathtrack.prepare_xla()``) and, in a subprocess with ``MJX_PATHTRACK_NO_XLA_FLAGS=1``, without it
 (that variant is ~1000x slower, so it runs only ``--no-flag-steps`` steps, default 1). One physics step =
 one ``mjx.step`` of every environment in the batch; the number printed is batch * steps / s,
 excluding compilation. The controls hold the initial pose (the cost of a step does not depend on
@@ -20,7 +20,9 @@ import subprocess
 import sys
 import time
 
-import mjx_pathtrack  # noqa: F401  (sets XLA flags before jax starts)
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 from mujoco import mjx

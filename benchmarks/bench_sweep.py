@@ -22,7 +22,9 @@ import argparse
 import dataclasses
 import time
 
-import mjx_pathtrack  # noqa: F401
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -25,7 +25,9 @@ import os
 import tempfile
 from pathlib import Path
 
-import mjx_pathtrack  # noqa: F401
+import mjx_pathtrack
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 

@@ -4,9 +4,11 @@ Why: with jax >= 0.9 the XLA CPU backend's new "fusion emitters" make batched
 (``vmap``-ed) ``mjx.step`` roughly 1000x slower than with the flag
 ``--xla_cpu_use_fusion_emitters=false`` (measured on this project's arm
 environments). XLA reads ``XLA_FLAGS`` once, when the first backend is
-initialised, so the flag has to be in the environment before then. The package
-``__init__`` therefore calls :func:`configure_xla_flags` before anything in the
-package imports jax.
+initialised, so the flag has to be in the environment before then. Importing the package
+changes nothing; its entry points (``train.py``, ``evaluate.py``, the benchmarks and scripts)
+call :func:`prepare` first, and so should a user's own program that runs batched MJX on a CPU
+(``mjx_pathtrack.prepare_xla()``; :class:`~mjx_pathtrack.executors.MjxExecutor` warns when the
+flag is missing).
 
 The flag only affects the CPU backend, so setting it on a GPU/TPU run is
 harmless; the platform check below errs towards setting it.
@@ -24,9 +26,9 @@ step together with Brax's PPO updates, whose elementwise and reduction fusions t
 compile worse) trains faster with XLA's default emitters: measured 34,277 against 30,095 PPO
 env-steps/s at 2048 iiwa environments (``benchmarks/bench_train.py``, docs/results.md "CPU XLA flags"). A process that
 knows before JAX starts that it will run no MJX physics (``train.py`` with the kinematic
-executor) therefore takes the flag out again with :func:`drop_cpu_fix`, which removes only a
-flag this package added (marked in ``MJX_PATHTRACK_ADDED_XLA_FLAG``, so a child process can
-tell it from a user's).
+executor) calls ``prepare(mjx_physics=False)``, which takes out a flag this package added
+in a parent process (:func:`drop_cpu_fix`; marked in ``MJX_PATHTRACK_ADDED_XLA_FLAG``, so a
+child process can tell it from a user's).
 
 This module must not import jax.
 """
@@ -36,6 +38,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+import warnings
 from collections.abc import Mapping, MutableMapping
 
 FUSION_FLAG_NAME = "xla_cpu_use_fusion_emitters"
@@ -146,6 +149,32 @@ def drop_cpu_fix(environ: MutableMapping[str, str] = os.environ) -> bool:
         del environ["XLA_FLAGS"]
     del environ[ADDED_VAR]
     return True
+
+
+def prepare(mjx_physics: bool = True, environ: MutableMapping[str, str] = os.environ) -> bool:
+    """Set up XLA_FLAGS for this process before JAX starts (the first call of an entry point).
+
+    ``mjx_physics``: the process will step batched MJX physics on the CPU, so the
+    fusion-emitter flag is appended (:func:`configure_xla_flags`); False: a flag this package
+    added in a parent process is taken out again (:func:`drop_cpu_fix`). A user's own flags
+    are kept either way. Warns (``RuntimeWarning``) if the flag was wanted but JAX's backend had
+    already read XLA_FLAGS. Returns True if ``environ`` was changed."""
+    if not mjx_physics:
+        return drop_cpu_fix(environ)
+    changed = configure_xla_flags(environ)
+    if changed and environ is os.environ and jax_backend_initialized():
+        warnings.warn(
+            f"mjx_pathtrack: JAX's backend was initialised before mjx_pathtrack.prepare_xla(), so XLA_FLAGS "
+            f"{FUSION_FLAG} could not take effect and batched MJX on CPU may be ~1000x slower. Call it before "
+            f"using jax, or set XLA_FLAGS='{FUSION_FLAG}' in the environment before starting Python "
+            f"(set {OPT_OUT_VAR}=1 to silence this).", RuntimeWarning, stacklevel=2)
+    return changed
+
+
+def flag_missing(environ: Mapping[str, str] = os.environ) -> bool:
+    """True if batched MJX on the CPU would run without the fusion-emitter flag although this
+    jaxlib has it and the user did not opt out or choose a value."""
+    return xla_flags_with_cpu_fix(environ, installed_jaxlib_version()) is not None
 
 
 def jax_backend_initialized() -> bool:

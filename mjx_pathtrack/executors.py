@@ -69,6 +69,7 @@ class MjxExecutor:
         self.robot = robot
         self.substeps = int(robot.n_substeps)
         self._data0 = robot.mjx_data()
+        _warn_if_slow_on_cpu()
 
     def init(self, p0: Array) -> Any:
         r = self.robot
@@ -88,3 +89,17 @@ class MjxExecutor:
         start = data.qpos[r.qpos_adr]
         data, measured = jax.lax.scan(physics, data, jnp.arange(self.substeps))
         return data, jnp.concatenate([start[None], measured]), {"qvel": data.qvel[r.dof_adr]}
+
+
+def _warn_if_slow_on_cpu() -> None:
+    """A ``RuntimeWarning`` if batched MJX will run on the CPU without the fusion-emitter flag
+    (mjx_pathtrack/_xla.py: ~1000x slower), naming the fix."""
+    import os
+    import warnings
+
+    from mjx_pathtrack import _xla
+
+    if jax.default_backend() == "cpu" and _xla.flag_missing(os.environ):
+        warnings.warn(f"MJX physics on the CPU without XLA_FLAGS {_xla.FUSION_FLAG}: batched steps may be ~1000x "
+                      f"slower. Call mjx_pathtrack.prepare_xla() before JAX starts, or set the flag in the "
+                      f"environment (set {_xla.OPT_OUT_VAR}=1 to silence this).", RuntimeWarning, stacklevel=3)

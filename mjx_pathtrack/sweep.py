@@ -49,7 +49,6 @@ import time
 from pathlib import Path as FsPath
 from typing import Any, Sequence
 
-import mjx_pathtrack  # noqa: F401  (sets the CPU XLA flags before JAX starts)
 import numpy as np
 
 from mjx_pathtrack.fileio import append_csv_row, atomic_write, atomic_write_bytes
@@ -566,4 +565,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    import mjx_pathtrack
+
+    mjx_pathtrack.prepare_xla()  # before JAX starts (python -m mjx_pathtrack.sweep)
     sys.exit(main())

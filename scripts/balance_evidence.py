@@ -36,7 +36,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 def make_dataset(root: Path, n_train: int, n_test: int) -> None:
     sys.path.insert(0, str(REPO))
-    import mjx_pathtrack  # noqa: F401  (XLA flags)
+    import mjx_pathtrack
+    mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
     import numpy as np
 
     from mjx_pathtrack import datasets, generate, robots

@@ -14,7 +14,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import mjx_pathtrack  # noqa: E402,F401  (XLA flags)
+import mjx_pathtrack  # noqa: E402
+
+mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402

@@ -3,6 +3,12 @@ import os
 import shutil
 import tempfile
 
+import mjx_pathtrack
+
+# Batched MJX on CPU needs the XLA flag before JAX starts (mjx_pathtrack/_xla.py); every test
+# process (and the subprocesses tests start, which inherit it) runs with it, as the entry points do.
+mjx_pathtrack.prepare_xla()
+
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 # One persistent XLA compilation cache per test process (also inherited by the subprocesses a

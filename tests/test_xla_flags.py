@@ -13,6 +13,7 @@ from mjx_pathtrack._xla import (
     configure_xla_flags,
     drop_cpu_fix,
     jaxlib_knows_flag,
+    prepare,
     xla_flags_with_cpu_fix,
 )
 
@@ -133,16 +134,28 @@ def _run(code):
     return result.stdout.strip()
 
 
-def test_import_appends_flag_in_subprocess():
-    flags = _run("import mjx_pathtrack, os; print(os.environ['XLA_FLAGS'])").split()
+def test_import_changes_nothing_and_prints_nothing():
+    out = _run("import os, sys, io, contextlib\n"
+               "before = dict(os.environ)\n"
+               "buf = io.StringIO()\n"
+               "with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):\n"
+               "    import mjx_pathtrack\n"
+               "print(dict(os.environ) == before, repr(buf.getvalue()))")
+    assert out == "True ''"
+    result = subprocess.run([sys.executable, "-c", "import mjx_pathtrack"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and result.stdout == "" and result.stderr == ""
+
+
+def test_prepare_appends_flag_in_subprocess():
+    flags = _run("import mjx_pathtrack, os; mjx_pathtrack.prepare_xla(); print(os.environ['XLA_FLAGS'])").split()
     assert USER_FLAG in flags
     assert FUSION_FLAG in flags
 
 
-def test_user_flag_takes_effect_after_import():
+def test_user_flag_takes_effect_after_prepare():
     out = _run(
         "import warnings; warnings.simplefilter('error')\n"
-        "import mjx_pathtrack; import jax\n"
+        "import mjx_pathtrack; mjx_pathtrack.prepare_xla(); import jax\n"
         "print(len(jax.devices()))"
     )
     assert out == "2"
@@ -151,9 +164,10 @@ def test_user_flag_takes_effect_after_import():
 def test_warns_when_backend_already_initialized():
     out = _run(
         "import warnings, jax; jax.devices()\n"
+        "import mjx_pathtrack\n"
         "with warnings.catch_warnings(record=True) as w:\n"
         "    warnings.simplefilter('always')\n"
-        "    import mjx_pathtrack\n"
+        "    mjx_pathtrack.prepare_xla()\n"
         "print(sum('could not take effect' in str(x.message) for x in w))"
     )
     assert out == "1"
@@ -162,18 +176,41 @@ def test_warns_when_backend_already_initialized():
 def test_no_warning_when_jax_imported_but_unused():
     out = _run(
         "import warnings, jax\n"
+        "import mjx_pathtrack\n"
         "with warnings.catch_warnings(record=True) as w:\n"
         "    warnings.simplefilter('always')\n"
-        "    import mjx_pathtrack\n"
+        "    mjx_pathtrack.prepare_xla()\n"
         "print(len(w), len(jax.devices()))"
     )
     assert out == "0 2"
 
 
+def test_prepare_without_mjx_drops_only_the_flag_a_parent_added():
+    env = {"XLA_FLAGS": USER_FLAG}
+    assert configure_xla_flags(env)  # what a parent process did
+    assert prepare(mjx_physics=False, environ=env)
+    assert env == {"XLA_FLAGS": USER_FLAG}
+    own = {"XLA_FLAGS": FUSION_FLAG}
+    assert not prepare(mjx_physics=False, environ=own) and own == {"XLA_FLAGS": FUSION_FLAG}
+
+
+def test_mjx_executor_warns_without_the_flag_and_names_the_fix():
+    code = ("import warnings\n"
+            "from mjx_pathtrack.executors import MjxExecutor\n"
+            "from mjx_pathtrack.robots import load_robot\n"
+            "robot = load_robot('iiwa')\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    warnings.simplefilter('always')\n"
+            "    MjxExecutor(robot)\n"
+            "print(sum('prepare_xla()' in str(x.message) for x in w))")
+    assert _run(code) == "1"  # _run's environment has the user's flag only
+    assert _run("import mjx_pathtrack; mjx_pathtrack.prepare_xla()\n" + code) == "0"
+
+
 def test_drop_in_a_fresh_process_only_before_the_backend_starts():
-    out = _run("import mjx_pathtrack, os; from mjx_pathtrack import _xla\n"
+    out = _run("import mjx_pathtrack, os; from mjx_pathtrack import _xla; mjx_pathtrack.prepare_xla()\n"
                "print(_xla.drop_cpu_fix(), os.environ['XLA_FLAGS'])")
     assert out == f"True {USER_FLAG}"
-    out = _run("import mjx_pathtrack, os, jax; from mjx_pathtrack import _xla; jax.devices()\n"
+    out = _run("import mjx_pathtrack, os, jax; from mjx_pathtrack import _xla; mjx_pathtrack.prepare_xla(); jax.devices()\n"
                "print(_xla.drop_cpu_fix(), _xla.FUSION_FLAG in os.environ['XLA_FLAGS'].split())")
     assert out == "False True"  # too late: XLA has read its flags
