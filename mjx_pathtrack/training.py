@@ -77,8 +77,8 @@ class TrainConfig:
     #: [rad] the end counts as reached this arc length before it (env.EnvConfig.end_tolerance)
     end_tolerance: float = 0.0
     #: when braking at the end starts: "at_end" (the papers) or "predictive" (env.EnvConfig.end_braking;
-    #: our default: the robot stops at the end knot instead of overshooting it, docs/results.md "Learning recipe")
-    end_braking: str = "predictive"
+    #: in --preset paper: the robot stops at the end knot instead of overshooting it, docs/results.md "Learning recipe")
+    end_braking: str = "at_end"
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
@@ -87,7 +87,7 @@ class TrainConfig:
     #: None: a constant learning rate; a number: geometric from ``learning_rate`` at the start to
     #: this value at the end of training (ppo.learning_rate_scale): with the shrinking std the
     #: updates would otherwise grow (KL ~ 1/std**2) and break the policy late in training
-    final_learning_rate: float | None = 3e-5
+    final_learning_rate: float | None = None
     entropy_cost: float = 1e-3
     discounting: float = 0.99
     gae_lambda: float = 0.95
@@ -114,8 +114,8 @@ class TrainConfig:
     #: not show: the steps left in the time budget, the path length left, braking
     #: (env.PathTrackingEnv.critic_features; training only: the policy and its export are unchanged).
     #: The stop reward is multiplied by the steps left in the budget, which the policy's observation
-    #: does not show; a critic that sees them learns far cleaner advantages (docs/results.md "Learning recipe")
-    privileged_critic: bool = True
+    #: does not show; a critic that sees them learns far cleaner advantages (in --preset paper) (docs/results.md "Learning recipe")
+    privileged_critic: bool = False
     task: str = "tracking"
     ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
     #: regenerate the train split with this many paths (deterministic, into <run>/data) when the
@@ -175,7 +175,8 @@ PRESETS = {
 #: of the robot/task presets (explicit flags still win); any robot or dataset (docs/results.md "Learning recipe")
 RECIPES = {
     # the default recipe at 40 M steps: ~51 min on 2 CPU cores (docs/results.md "Learning recipe")
-    "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05),
+    "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05,
+                  privileged_critic=True, final_learning_rate=3e-5, end_braking="predictive"),
 }
 
 
