@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjx_pathtrack.env import PathTrackingEnv
 from mjx_pathtrack.wrappers import CriticFeatures, wrap_for_training
 
 #: name of the device axis under ``jax.pmap``
@@ -39,7 +40,7 @@ DEVICE_AXIS = "devices"
 
 #: number of extra inputs of a privileged value network (``TrainConfig.privileged_critic``;
 #: :meth:`mjx_pathtrack.env.PathTrackingEnv.critic_features`)
-CRITIC_FEATURES = 3
+CRITIC_FEATURES = len(PathTrackingEnv.CRITIC_FEATURES)
 
 
 def networks(config):
@@ -63,7 +64,7 @@ def networks(config):
                   mean_clip_scale=config.mean_clip, mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
                   mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
                                                distribution="truncated_normal"))
-    if not getattr(config, "privileged_critic", False):
+    if not getattr(config, "privileged_critic", False):  # (the velocity task's config has no such field)
         return functools.partial(brax_networks.make_ppo_networks, **layers)
 
     def make(observation_size: int, action_size: int, preprocess_observations_fn):
@@ -178,8 +179,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
     check_batch(c)
     episode_length = c.env_config().max_episode_steps() + 1
     network = networks(c)(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
-    extend = getattr(c, "privileged_critic", False)
-    obs_size = env.observation_size + (CRITIC_FEATURES if extend else 0)
+    extend = c.privileged_critic
     make_policy = brax_ppo_networks.make_inference_fn(network)
     optimizer = optax.adam(learning_rate=c.learning_rate)
     loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=network, entropy_cost=c.entropy_cost,
@@ -200,7 +200,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
         params = ppo_losses.PPONetworkParams(policy=network.policy_network.init(key_policy),
                                              value=network.value_network.init(key_value))
         env_state = member_env(weights).reset(jax.random.split(key_env, n_envs))
-        obs_spec = jax.ShapeDtypeStruct((obs_size,), jnp.float32)
+        obs_spec = jax.ShapeDtypeStruct(env_state.obs.shape[-1:], jnp.float32)
         learner = Learner(optimizer.init(params), params, running_statistics.init_state(obs_spec), env_state, local_key)
         # strong types throughout (Brax's std parameter starts weakly typed): otherwise the first
         # iterations see other input types than the later ones and compile up to three times

@@ -113,8 +113,8 @@ class TrainConfig:
     #: the value network also sees what the return depends on but the policy's observation does
     #: not show: the steps left in the time budget, the path length left, braking
     #: (env.PathTrackingEnv.critic_features; training only: the policy and its export are unchanged).
-    #: The stop reward is multiplied by the steps left in the budget, which the policy's observation
-    #: does not show; a critic that sees them learns far cleaner advantages (in --preset paper) (docs/results.md "Learning recipe")
+    #: The stop reward is multiplied by the steps left in the budget; a critic that sees them learns
+    #: far cleaner advantages (on in --preset paper; docs/results.md "Learning recipe")
     privileged_critic: bool = False
     task: str = "tracking"
     ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
@@ -174,7 +174,8 @@ PRESETS = {
 #: training recipes at larger budgets (``train.py --preset NAME``), flag defaults applied on top
 #: of the robot/task presets (explicit flags still win); any robot or dataset (docs/results.md "Learning recipe")
 RECIPES = {
-    # the default recipe at 40 M steps: ~51 min on 2 CPU cores (docs/results.md "Learning recipe")
+    # the default recipe at 40 M steps with a privileged critic, a falling learning rate and
+    # predictive end braking: ~60 min on 2 CPU cores (docs/results.md "Learning recipe")
     "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05,
                   privileged_critic=True, final_learning_rate=3e-5, end_braking="predictive"),
 }
