@@ -175,7 +175,7 @@ PRESETS = {
 #: of the robot/task presets (explicit flags still win); any robot or dataset (docs/results.md "Learning recipe")
 RECIPES = {
     # the default recipe at 40 M steps with a privileged critic, a falling learning rate and
-    # predictive end braking: ~60 min on 2 CPU cores (docs/results.md "Learning recipe")
+    # predictive end braking: ~34 min of training on 2 CPU cores (docs/results.md "Learning recipe")
     "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05,
                   privileged_critic=True, final_learning_rate=3e-5, end_braking="predictive"),
 }
