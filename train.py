@@ -1,7 +1,7 @@
 """Train a path-tracking policy with Brax PPO on batched environments.
 
-    python train.py                      # iiwa, random paths, CPU-sized default run
-    python train.py --preset paper       # 40 M steps + privileged critic, falling learning rate, predictive braking (~35 min on 2 cores)
+    python train.py                      # iiwa, random paths, CPU-sized default run (~6 min on 2 cores)
+    python train.py --preset paper       # the same recipe at 40 M steps (~30 min on 2 cores)
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
     python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
@@ -52,7 +52,7 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "
-                             "(mjx_pathtrack.training.RECIPES; paper: 40 M steps and three options, ~35 min on 2 CPU cores)")
+                             "(mjx_pathtrack.training.RECIPES; paper: the default recipe at 40 M steps, ~30 min on 2 CPU cores)")
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default=None,

@@ -76,9 +76,10 @@ class TrainConfig:
     terminate_deviation: float = 0.25
     #: [rad] the end counts as reached this arc length before it (env.EnvConfig.end_tolerance)
     end_tolerance: float = 0.0
-    #: when braking at the end starts: "at_end" (the papers) or "predictive" (env.EnvConfig.end_braking;
-    #: in --preset paper: the robot stops at the end knot instead of overshooting it, docs/results.md "Learning recipe")
-    end_braking: str = "at_end"
+    #: when braking at the end starts: "predictive" (env.EnvConfig.end_braking: the robot stops at
+    #: the end knot instead of overshooting it by its braking distance, docs/results.md "Learning
+    #: recipe") or "at_end" (the papers' rule)
+    end_braking: str = "predictive"
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
@@ -87,7 +88,7 @@ class TrainConfig:
     #: None: a constant learning rate; a number: geometric from ``learning_rate`` at the start to
     #: this value at the end of training (ppo.learning_rate_scale): with the shrinking std the
     #: updates would otherwise grow (KL ~ 1/std**2) and break the policy late in training
-    final_learning_rate: float | None = None
+    final_learning_rate: float | None = 3e-5
     entropy_cost: float = 1e-3
     discounting: float = 0.99
     gae_lambda: float = 0.95
@@ -114,8 +115,8 @@ class TrainConfig:
     #: not show: the steps left in the time budget, the path length left, braking
     #: (env.PathTrackingEnv.critic_features; training only: the policy and its export are unchanged).
     #: The stop reward is multiplied by the steps left in the budget; a critic that sees them learns
-    #: far cleaner advantages (on in --preset paper; docs/results.md "Learning recipe")
-    privileged_critic: bool = False
+    #: far cleaner advantages (docs/results.md "Learning recipe"; off: the papers' value network)
+    privileged_critic: bool = True
     task: str = "tracking"
     ball_reward: float = 1.0  # ball_on_plate: weight of R_ball; 0 = trained without the ball (no sensor)
     #: regenerate the train split with this many paths (deterministic, into <run>/data) when the
@@ -174,10 +175,9 @@ PRESETS = {
 #: training recipes at larger budgets (``train.py --preset NAME``), flag defaults applied on top
 #: of the robot/task presets (explicit flags still win); any robot or dataset (docs/results.md "Learning recipe")
 RECIPES = {
-    # the default recipe at 40 M steps with a privileged critic, a falling learning rate and
-    # predictive end braking: ~34 min of training on 2 CPU cores (docs/results.md "Learning recipe")
-    "paper": dict(num_timesteps=40_000_000, num_evals=11, final_noise_std=0.05,
-                  privileged_critic=True, final_learning_rate=3e-5, end_braking="predictive"),
+    # the default recipe at 40 M steps (~34 min of training on 2 CPU cores, docs/results.md
+    # "Learning recipe")
+    "paper": dict(num_timesteps=40_000_000, num_evals=11),
 }
 
 
