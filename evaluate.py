@@ -41,10 +41,9 @@ def parse_args(argv=None):
                         help="count the path end as reached (and brake) this arc length before it, instead of the "
                              "training config's (0: the papers' rule); a deterministic policy can stall just short "
                              "of the end")
-    parser.add_argument("--end-braking", choices=("at_end", "predictive", "to_end"), default=None,
-                        help="how the robot brakes at the path end, instead of the training config's: at_end (the "
-                             "papers: once the end is reached), predictive (once the fastest stop would reach it) "
-                             "or to_end (then a synchronized stop stretched to end at the end knot)")
+    parser.add_argument("--end-braking", choices=("at_end", "predictive"), default=None,
+                        help="when braking at the path end starts, instead of the training config's: at_end (the "
+                             "papers: once the end is reached) or predictive (once the fastest stop would reach it)")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--jerk-optimum", action="store_true",
                         help="also the jerk-limited time-optimal duration of every episode (TOPP3 of copp-py, ~1 s "

@@ -394,7 +394,7 @@ def _step_core(env: PathTrackingEnv, controller_dt: float, core: _Core, action: 
     fault = core.fault | bad_action
     end_braking = track.braking
     action = jnp.where(fault, 0.0, action)
-    new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action, end_stop=~fault)
+    new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action)
     length = new.path.length
     reached = env.end_reached(new.path, new.s)
     new = new._replace(braking=end_braking | reached)

@@ -41,9 +41,7 @@ Array = jax.Array
 #: how the observation shows the next knots (:class:`EnvConfig` ``knots_frame``)
 KNOTS_FRAMES = ("absolute", "relative")
 #: when braking at the end of the path starts (:class:`EnvConfig` ``end_braking``)
-END_BRAKING = ("at_end", "predictive", "to_end")
-#: the least time scale of a "to_end" stop (at most this many times slower than the fastest one)
-MIN_STOP_TIME_SCALE = 0.1
+END_BRAKING = ("at_end", "predictive")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,12 +67,6 @@ class EnvConfig:
     remaining arc length is at most the length of that stop (:meth:`PathTrackingEnv.stop_length`,
     predicted without position limits). A policy that arrives at speed then stops at the end
     instead of overshooting it by its braking distance; braking itself is the same.
-    ``"to_end"``: braking starts as with ``"predictive"`` and then makes the stop end *at* the
-    end: the joints brake together along the direction of motion (a synchronized stop,
-    :func:`~mjx_pathtrack.limits.braking_acceleration`), stretched in time so that its length
-    equals the arc length left, re-planned every step. ``"predictive"`` starts braking at the
-    first decision instant whose fastest stop reaches the end, i.e. up to one step's travel
-    short of it, and stops there.
     knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
     ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
     max_dis_between_knots``): same size, but the policy need not learn the subtraction (docs/results.md
@@ -273,18 +265,15 @@ class PathTrackingEnv(Env):
                                braking=track.braking & self.end_reached(path, track.s))
         return state.replace(pipeline_state=track, obs=self.observe(track))
 
-    def transition(self, track: TrackState, action: Array, end_stop: Array | bool = True):
-        """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``.
-        ``end_stop`` (bool ``[]``): braking, if on, is the stop at the path end (False: a stop for
-        another reason, e.g. a fault in :class:`~mjx_pathtrack.controller.OnlineTracker`, which
-        is always the fastest one)."""
+    def transition(self, track: TrackState, action: Array):
+        """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``."""
         cfg, lim = self.config, self.limits
         path = self.reference(track)
         # the safe range of the current state (computed here rather than at the end of the
         # previous step, so that a reset does not pay for it)
         a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
         a_policy = L.action_to_acceleration(action, a_min, a_max)
-        a_brake = self.braking_acceleration(track, path, (a_min, a_max), end_stop)
+        a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
         # (materialised: the executor's set-points and the integration would each recompute it)
         a_next = L.materialized(jnp.where(track.braking, a_brake, a_policy))
         # executed positions at the sub-steps of the step, start point included: [S+1, n]
@@ -298,24 +287,21 @@ class PathTrackingEnv(Env):
         terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
                                  d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
         steps = track.steps + 1
-        ahead = self.stop_length(p1, v1, a_next) if cfg.end_braking != "at_end" else 0.0
+        ahead = self.stop_length(p1, v1, a_next) if cfg.end_braking == "predictive" else 0.0
         reached_end = self.end_reached(path, s1 + ahead)
         braking = track.braking | (reached_end & cfg.brake_at_end)
         new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
         task_terms, failed, task_metrics = self.task_step(track, new, sensors)
         terms = {**terms, **task_terms}
+        reward = sum(terms.values())
         stopped = track.braking & jnp.all(jnp.abs(v1) < cfg.stop_velocity) & jnp.all(jnp.abs(a_next) < cfg.stop_acceleration)
         done_stop = stopped if cfg.terminate_on_stop else jnp.zeros((), bool)
-        final_dev = R.weighted_deviation(S.end_knot(path), executed[-1], cfg.deviation_weights)
-        if cfg.reward.final_deviation:  # (a static weight: without the term the step is unchanged)
-            terms["final_deviation"] = jnp.where(done_stop, cfg.reward.final_deviation * R.deviation_reward(
-                final_dev, cfg.reward.deviation_threshold), 0.0)
-        reward = sum(terms.values())
         done_dev = (d_max > cfg.terminate_deviation) if cfg.terminate_deviation is not None else jnp.zeros((), bool)
         done_time = steps >= track.max_steps
         done = done_stop | done_dev | done_time | failed
         # finishing early must not lower the return: the stop reward counts for every remaining step
         reward = jnp.where(done_stop, reward * (track.max_steps + 1 - steps).astype(jnp.float32), reward)
+        final_dev = R.weighted_deviation(S.end_knot(path), executed[-1], cfg.deviation_weights)
         success = done & ~done_dev & ~failed & (final_dev < cfg.success_deviation)
         metrics = {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}, "length": length, "d_max": d_max,
                    "d_mean": d_mean, "progress": (s1 - track.s_start) / jnp.maximum(path.length - track.s_start, 1e-9),
@@ -328,35 +314,17 @@ class PathTrackingEnv(Env):
         """bool ``[]``: arc position ``s`` [rad] is at the end of ``path`` (within ``end_tolerance``)."""
         return s >= path.length - self.config.end_tolerance
 
-    def braking_acceleration(self, track: TrackState, path: S.AnyPath, safe_range: tuple[Array, Array],
-                             end_stop: Array | bool = True) -> Array:
-        """Next acceleration ``[n]`` while braking (:func:`~mjx_pathtrack.limits.braking_acceleration`
-        within ``safe_range``): the fastest stop, or with ``end_braking="to_end"`` and ``end_stop``
-        the synchronized stop stretched in time by ``length of the fastest stop / arc length left``
-        (in [MIN_STOP_TIME_SCALE, 1]) so that it ends at the end of ``path``."""
-        lim, dt = self.limits, self.config.dt
-        if self.config.end_braking != "to_end":
-            return L.braking_acceleration(lim, track.p, track.v, track.a, dt, safe_range=safe_range)
-        left = jnp.maximum(path.length - track.s, 0.0)
-        fastest = self.stop_length(track.p, track.v, track.a)
-        scale = jnp.clip(fastest / jnp.maximum(left, 1e-6), MIN_STOP_TIME_SCALE, 1.0)
-        scale = jnp.where(end_stop, scale, 1.0)
-        return L.braking_acceleration(lim, track.p, track.v, track.a, dt, safe_range=safe_range,
-                                      synchronized=True, time_scale=scale)
-
     def stop_length(self, p: Array, v: Array, a: Array) -> Array:
-        """Path-joint arc length [rad] ``[]`` of the stop from ``(p, v, a) [n]`` without stretching:
-        the braking accelerations (:func:`~mjx_pathtrack.limits.braking_acceleration`, jerk and
-        acceleration limits, position limits ignored; synchronized with ``end_braking="to_end"``)
-        integrated over :attr:`stop_steps` decision steps, as the polyline through the decision
-        instants."""
+        """Path-joint arc length [rad] ``[]`` of the fastest stop from ``(p, v, a) [n]``: the
+        braking accelerations (:func:`~mjx_pathtrack.limits.braking_acceleration`, jerk and
+        acceleration limits, position limits ignored) integrated over :attr:`stop_steps`
+        decision steps, as the polyline through the decision instants."""
         lim, dt, pj = self.limits, self.config.dt, self.path_joints
         free = (-lim.acc, lim.acc)
-        synchronized = self.config.end_braking == "to_end"
 
         def step(carry, _):
             p, v, a = carry
-            a1 = L.braking_acceleration(lim, p, v, a, dt, safe_range=free, synchronized=synchronized)
+            a1 = L.braking_acceleration(lim, p, v, a, dt, safe_range=free)
             p1, v1, _ = L.integrate(p, v, a, a1, dt, dt)
             return (p1, v1, a1), jnp.linalg.norm(p1[pj] - p[pj])
 
@@ -367,11 +335,10 @@ class PathTrackingEnv(Env):
     def stop_steps(self) -> int:
         """Decision steps that bound the fastest stop from any state within the limits: from
         ``|v| <= V``, ``|a| <= A`` the acceleration reaches ``-A`` within ``2 A / J`` and the
-        velocity zero within ``V / A`` more (+2 steps for the grid; +2 more for a synchronized
-        stop, whose scaled joints can end a grid step after the slowest one)."""
+        velocity zero within ``V / A`` more (+2 steps for the grid)."""
         lim = self.limits
         worst = np.max(np.asarray(lim.vel) / np.asarray(lim.acc) + 2.0 * np.asarray(lim.acc) / np.asarray(lim.jerk))
-        return int(np.ceil(worst / self.config.dt)) + 2 + (2 if self.config.end_braking == "to_end" else 0)
+        return int(np.ceil(worst / self.config.dt)) + 2
 
     #: values of :meth:`critic_features`
     CRITIC_FEATURES = ("budget_left", "path_left", "braking")
@@ -403,7 +370,6 @@ class PathTrackingEnv(Env):
 
     def metric_names(self) -> tuple[str, ...]:
         terms = ("distance", "max_deviation", "mean_deviation", "action")
-        terms += ("final_deviation",) if self.config.reward.final_deviation else ()
         return ("reward",) + tuple(f"reward/{k}" for k in terms) + ("length", "d_max", "d_mean", "progress", "reached_end",
                                                       "success", "terminated_deviation", "task_failed")
 

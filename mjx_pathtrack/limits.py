@@ -862,61 +862,15 @@ def materialized(x: Array) -> Array:
     return jnp.max(jnp.stack([x, jnp.full_like(x, -jnp.inf)], axis=-1), axis=-1)
 
 
-#: lower bound of a joint's time scale in synchronized braking (stop_time_scale): a joint that
-#: could stop almost at once still brakes with at least this fraction of its limits (A k, J k^2)
-MIN_BRAKING_SCALE = 0.05
-
-
-def fastest_stop_time(v: Array, a: Array, acc: Array, jerk: Array) -> Array:
-    """Duration [s] ``[..., n]`` of each joint's fastest stop from velocity ``v`` [rad/s] and
-    acceleration ``a`` [rad/s^2] under acceleration and jerk limits ``acc``, ``jerk`` (continuous
-    time, no decision grid): the acceleration ramps at ``jerk`` towards braking, holds at most
-    ``-acc`` and ramps back to 0 just as the velocity reaches 0. A braking acceleration
-    already present counts as a ramp that started ``|a| / jerk`` ago. 0 for a joint at rest."""
-    v, a = jnp.asarray(v, jnp.float32), jnp.asarray(a, jnp.float32)
-    sign = jnp.where(v != 0, jnp.sign(v), jnp.sign(a))
-    v_, a_ = sign * v, sign * a
-    # velocity to take away from a = 0 (the ramp of a from a_ to 0, or from 0 to a_ < 0, included)
-    w = v_ + 0.5 * a_ * a_ / jerk
-    full = acc * acc / jerk  # velocity removed by a ramp to -acc and back
-    t0 = jnp.where(w >= full, w / acc + acc / jerk, 2.0 * jnp.sqrt(jnp.maximum(w, 0.0) / jerk))
-    return jnp.maximum(t0 + a_ / jerk, 0.0)
-
-
-def stop_time_scale(v: Array, a: Array, acc: Array, jerk: Array) -> Array:
-    """Per-joint time scale ``k [..., n]`` in [MIN_BRAKING_SCALE, 1] of a synchronized stop: the
-    ratio of each joint's fastest stop time (:func:`fastest_stop_time`) to the slowest joint's.
-    Braking joint ``i`` with limits ``k_i A_i``, ``k_i^2 J_i`` stretches its fastest stop in time
-    by ``1 / k_i``, so every joint stops with the slowest one and the stop follows the direction
-    of motion instead of bending towards the joints that stop late."""
-    t = fastest_stop_time(v, a, acc, jerk)
-    t_max = jnp.max(t, axis=-1, keepdims=True)
-    return jnp.clip(t / jnp.where(t_max > 0, t_max, 1.0), MIN_BRAKING_SCALE, 1.0)
-
-
 def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt,
-                         safe_range: tuple[Array, Array] | None = None, synchronized: bool = False,
-                         time_scale: Array | float | None = None) -> Array:
+                         safe_range: tuple[Array, Array] | None = None) -> Array:
     """Next acceleration of the fastest safe stop ``[..., n]``: drive the velocity to zero as
     fast as jerk and acceleration limits allow, arriving with zero acceleration on the grid
     (velocity target 0 treated as a velocity limit with no settling margin), clipped to the
     safe range so that position limits still hold. Pass ``safe_range=(a_min, a_max)`` of the
-    same state if it was computed already.
-
-    ``synchronized``: every joint brakes on its fastest profile stretched in time to the slowest
-    joint's stop (limits scaled by :func:`stop_time_scale`), so the joints stop together along
-    the direction of motion; the stop takes as long as the slowest joint's fastest one (up to
-    the decision grid). ``time_scale`` ``[...]`` in (0, 1] (a broadcastable array or float):
-    stretch the stop further in time by ``1 / time_scale`` (limits ``A c``, ``J c^2``), which
-    lengthens it about as much; used to stop at a given point (``env.EnvConfig.end_braking``
-    "to_end"). Either way the result lies in the safe range: every limit holds."""
+    same state if it was computed already."""
     p, v, a = (jnp.asarray(x, jnp.float32) for x in (p, v, a))
     A, J = limits.acc, limits.jerk
-    if synchronized or time_scale is not None:
-        k = stop_time_scale(v, a, A, J) if synchronized else jnp.ones_like(v)
-        if time_scale is not None:
-            k = k * jnp.asarray(time_scale, jnp.float32)[..., None]
-        A, J = A * k, J * k * k
     delta = J * dt
     zero = jnp.zeros_like(v)
     # v > 0: the lowest a1 that does not push the velocity below 0 (hardest braking without
@@ -931,7 +885,7 @@ def braking_acceleration(limits: JointLimits, p: Array, v: Array, a: Array, dt,
     target = jnp.where(rising, hardest_down, jnp.where(falling, hardest_up, zero))
     # at rest up to rounding (the stop's last grid acceleration comes out a few ulps off zero):
     # hold still
-    settled = (jnp.abs(v) <= SETTLED_VELOCITY * limits.vel) & (jnp.abs(a) <= SETTLED_ACCELERATION * limits.acc)
+    settled = (jnp.abs(v) <= SETTLED_VELOCITY * limits.vel) & (jnp.abs(a) <= SETTLED_ACCELERATION * A)
     target = jnp.where(settled, zero, target)
     target = jnp.clip(target, jnp.maximum(a - delta, -A), jnp.minimum(a + delta, A))
     a_min, a_max = safe_acceleration_range(limits, p, v, a, dt) if safe_range is None else safe_range

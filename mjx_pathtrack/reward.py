@@ -108,10 +108,7 @@ class RewardWeights:
     ``alpha``: path-length reward; ``max_deviation``/``mean_deviation``: R_d of d_max / d_mean;
     ``deviation_threshold`` [rad]; ``action``: R_action; ``ball``: R_ball; ``base_pos``,
     ``base_orn``, ``tilt``, ``end_point``: ARMAR-4 balance terms with their scales
-    ``base_pos_max`` [m], ``base_orn_max`` [-], ``tilt_max`` [rad], ``end_point_max`` [m];
-    ``final_deviation``: R_d of the deviation from the end knot where the robot stopped, paid
-    in the stop step only (so, like that step's other terms, once per step left in the budget;
-    0 in the papers, docs/method.md §2.4).
+    ``base_pos_max`` [m], ``base_orn_max`` [-], ``tilt_max`` [rad], ``end_point_max`` [m].
     """
 
     alpha: float = 2.0
@@ -128,7 +125,6 @@ class RewardWeights:
     base_orn_max: float = 0.5
     tilt_max: float = 0.125
     end_point_max: float = 0.4
-    final_deviation: float = 0.0
 
 
 def tracking_terms(weights: RewardWeights, length: Array, length_state: Array, length_over,

@@ -81,10 +81,6 @@ class TrainConfig:
     #: recipe") or "at_end" (the papers' rule)
     end_braking: str = "predictive"
     action_reward: float = 0.4
-    #: weight of R_d of the final deviation (end knot against where the robot stopped), paid in
-    #: the stop step and so once per step left in the budget (reward.RewardWeights.final_deviation;
-    #: 0: the papers' reward)
-    final_deviation_reward: float = 0.0
     duration: float = 16.0
     num_envs: int = 256
     num_timesteps: int = 9_600_000
@@ -131,8 +127,7 @@ class TrainConfig:
 
     def env_config(self) -> EnvConfig:
         weights = R.RewardWeights(alpha=self.alpha, max_deviation=self.beta, mean_deviation=self.beta,
-                                  deviation_threshold=self.deviation_threshold, action=self.action_reward,
-                                  final_deviation=self.final_deviation_reward)
+                                  deviation_threshold=self.deviation_threshold, action=self.action_reward)
         if self.task == "balance":
             from mjx_pathtrack.tasks import humanoid_balance
 
@@ -339,7 +334,7 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         value = getattr(c, name)
         if not (np.isfinite(value) and value > 0):
             fail(name, f"must be a finite number > 0, got {value}")
-    for name in ("alpha", "beta", "action_reward", "final_deviation_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
+    for name in ("alpha", "beta", "action_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
         value = getattr(c, name)
         if not (np.isfinite(value) and value >= 0):
             fail(name, f"must be a finite number >= 0, got {value}")
