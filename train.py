@@ -126,7 +126,12 @@ def main(argv=None) -> int:
     args, config = parse_args(argv)  # (imports jax, but its backend starts later)
     # the CPU flag batched MJX needs; without MJX physics XLA's default CPU fusion emitters train
     # faster (mjx_pathtrack/_xla.py); a user's own flag is kept
-    mjx_pathtrack.prepare_xla(mjx_physics=config.executor != "kinematic" or bool(args.sweep))
+    if args.sweep:
+        from mjx_pathtrack.sweep import steps_mjx_physics
+
+        mjx_pathtrack.prepare_xla(mjx_physics=steps_mjx_physics(args.sweep))
+    else:
+        mjx_pathtrack.prepare_xla(mjx_physics=config.executor != "kinematic")
     use_compilation_cache(args.compilation_cache)
     if args.sweep:
         from mjx_pathtrack import sweep

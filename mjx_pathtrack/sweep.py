@@ -205,6 +205,17 @@ def grid_points(spec: SweepSpec) -> list[Point]:
     return points
 
 
+def steps_mjx_physics(file: str | FsPath) -> bool:
+    """Whether a point of the sweep file ``file`` steps MJX physics (an executor other than
+    ``kinematic``), i.e. whether the process needs the CPU fusion-emitter flag
+    (``mjx_pathtrack.prepare_xla``); kinematic points train faster without it. True if the file
+    cannot be read (the sweep itself then reports why)."""
+    try:
+        return any(p.config.executor != "kinematic" for p in grid_points(load_spec(file)))
+    except (OSError, ValueError):
+        return True
+
+
 def check_datasets(spec: SweepSpec, points: Sequence[Point]) -> None:
     """Fail before any training if a training or test dataset is missing."""
     from mjx_pathtrack import datasets
@@ -567,5 +578,6 @@ def main(argv=None) -> int:
 if __name__ == "__main__":
     import mjx_pathtrack
 
-    mjx_pathtrack.prepare_xla()  # before JAX starts (python -m mjx_pathtrack.sweep)
+    # before JAX starts (python -m mjx_pathtrack.sweep FILE ...)
+    mjx_pathtrack.prepare_xla(mjx_physics=len(sys.argv) < 2 or steps_mjx_physics(sys.argv[1]))
     sys.exit(main())

@@ -202,6 +202,19 @@ def test_grid_points_are_the_cartesian_product_in_file_order():
     assert sweep.grid_points(sweep.parse_spec({}))[0].name == "base"
 
 
+def test_the_xla_flag_for_mjx_physics_is_wanted_only_by_sweeps_that_step_mjx(tmp_path):
+    """A kinematic sweep trains with XLA's default CPU emitters, like a kinematic train.py run
+    (faster, and its points equal those runs); one MJX point, or a file that cannot be read,
+    asks for the fusion-emitter flag."""
+    kinematic = write_spec(tmp_path / "k.yaml", grid={"alpha": [1.0, 2.0]})
+    mixed = write_spec(tmp_path / "m.yaml", grid={"executor": ["kinematic", "mjx"]})
+    assert sweep.steps_mjx_physics(kinematic) is False
+    assert sweep.steps_mjx_physics(mixed) is True
+    assert sweep.steps_mjx_physics(tmp_path / "missing.yaml") is True
+    (tmp_path / "bad.yaml").write_text("grid: {alfa: [1.0]}")
+    assert sweep.steps_mjx_physics(tmp_path / "bad.yaml") is True
+
+
 def test_changed_sweep_file_does_not_silently_reuse_another_run(tiny_sweep, tmp_path):
     _, spec, out, _ = tiny_sweep
     copy = tmp_path / "sweep"
