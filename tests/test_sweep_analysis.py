@@ -103,3 +103,54 @@ def test_plots_draw_points_front_and_joints(tmp_path):
     assert len(fig.axes[0].get_lines()) == n and velocity[0] == 0.0 and np.allclose(velocity[1:], 0.5)
     positions_t = fig.axes[0].get_lines()[0].get_xdata()
     assert positions_t[0] == 0.0 and positions_t[-1] == pytest.approx(0.3) and len(positions_t) == 1 + 3 * 24
+
+
+def _write_sweep_with_configs(directory: Path, rows: list[dict], grid: dict, configs: list[dict]) -> Path:
+    columns = [c for c in COLUMNS if c not in ("n_next", "alpha", "dataset")]
+    columns[1:1] = list(grid)
+    with_grid = [{k: r[k] for k in columns} for r in rows]
+    directory.mkdir(parents=True, exist_ok=True)
+    with open(directory / "summary.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(with_grid)
+    (directory / "sweep.json").write_text(json.dumps({"base": {}, "grid": grid}))
+    for r, config in zip(rows, configs):
+        (directory / r["run_dir"]).mkdir()
+        (directory / r["run_dir"] / "config.json").write_text(json.dumps(config))
+    return directory
+
+
+def test_combine_joins_sweeps_reads_fixed_fields_from_configs_and_keeps_a_shared_point_once(tmp_path):
+    alphas = [row("alpha=2.0", 8, 2.0, 4.0, 0.06), row("alpha=3.0", 8, 3.0, 3.8, 0.08),
+              row("alpha=4.5", 8, 4.5, 3.7, 0.09)]
+    knots = [row("n_next=4", 4, 3.0, 4.4, 0.07), row("n_next=8", 8, 3.0, 3.9, 0.08)]
+    table2 = _write_sweep_with_configs(tmp_path / "t2", alphas, {"alpha": [2.0, 3.0, 4.5]},
+                                       [{"n_next": 8, "alpha": r["alpha"]} for r in alphas])
+    table3 = _write_sweep_with_configs(tmp_path / "t3", knots, {"n_next": [4, 8]},
+                                       [{"n_next": r["n_next"], "alpha": 3.0} for r in knots])
+    s2, s3 = A.load_summary(table2), A.load_summary(table3)
+    assert "n_next" not in s2 and "alpha" not in s3
+    both = A.combine([s2, s3])
+    assert A.swept_fields(both) == ["alpha", "n_next"]
+    # alpha=3 / n_next=8 is the same configuration in both sweeps: kept once, from the first
+    assert both["point"].tolist() == ["t2/alpha=2.0", "t2/alpha=3.0", "t2/alpha=4.5", "t3/n_next=4"]
+    assert both["n_next"].tolist() == [8.0, 8.0, 8.0, 4.0] and both["alpha"].tolist() == [2.0, 3.0, 4.5, 3.0]
+    assert both["stop_time_s"].tolist() == [4.0, 3.8, 3.7, 4.4]
+    assert all((Path(d) / "config.json").is_file() for d in both["run_dir"])
+    t2 = A.tradeoff_table(both)
+    assert t2.rows[0][0] == "alpha=4.5, n_next=8" and [r[-1] for r in t2.rows] == [True, True, True, False]
+    with pytest.raises(A.AnalysisError, match="no sweeps"):
+        A.combine([])
+
+
+def test_paper_rows_beside_ours():
+    paper = A.paper_table2()
+    assert [r[1] for r in paper.rows] == [4.76, 4.28, 4.08] and [r[2] for r in paper.rows] == [2.7, 3.3, 3.6]
+    summary = {"n_next": np.array([4.0, 6.0, 8.0, 5.0]), "stop_time_s": np.array([5.0, 4.5, 4.0, 4.8]),
+               "mean_deviation": np.full(4, 0.08), "max_deviation": np.full(4, 0.15), "end_reached": np.ones(4)}
+    t3 = A.knots_table(summary)
+    # the paper counts the knots in the state, N + 1: its 5 / 7 / 9 are N = 4 / 6 / 8; N = 5 has no paper row
+    assert [r[6] for r in t3.rows] == [5, 6, 7, 9]
+    assert [r[7] for r in t3.rows][0] == 5.20 and np.isnan(t3.rows[1][7]) and t3.rows[2][7] == 4.52
+    assert t3.rows[3][7:] == [4.28, 3.3] and "N + 1" in " ".join(t3.columns)
