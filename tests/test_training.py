@@ -1,6 +1,7 @@
 """train.py / training.py on tiny runs: outputs, determinism, resume, two host devices."""
 
 import csv
+import dataclasses
 import json
 import os
 import pickle
@@ -150,8 +151,13 @@ def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
     args, cfg = cli.parse_args(["--preset", "paper"])
     assert args.out == "runs/iiwa_random_paper"
     assert cfg == TrainConfig(**RECIPES["paper"]) and cfg.num_timesteps > TrainConfig().num_timesteps
+    # the default recipe, only longer: the privileged critic, the falling learning rate and
+    # predictive braking are the defaults of both
+    assert dataclasses.replace(cfg, num_timesteps=TrainConfig().num_timesteps, num_evals=TrainConfig().num_evals) \
+        == TrainConfig()
+    assert (cfg.privileged_critic, cfg.final_learning_rate, cfg.end_braking) == (True, 3e-5, "predictive")
     args, cfg = cli.parse_args(["--preset", "paper", "--robot", "armar6", "--num-timesteps", "1000"])
-    assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.final_noise_std) == ("armar6", 1.0, 1000, RECIPES["paper"]["final_noise_std"])
+    assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.num_evals) == ("armar6", 1.0, 1000, RECIPES["paper"]["num_evals"])
     assert args.out == "runs/armar6_random_paper"
     with pytest.raises(SystemExit):
         cli.parse_args(["--preset", "fastest"])
