@@ -121,6 +121,7 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
 
     args, cfg = cli.parse_args(["--robot", "armar6"])
     assert (cfg.robot, cfg.executor, cfg.alpha, cfg.duration, cfg.action_reward) == ("armar6", "kinematic", 1.0, 20.0, 0.0)
+    assert (cfg.num_train_paths, cfg.num_timesteps) == (60, 24_000_000)  # this package's ARMAR-6 budget
     assert args.out == "runs/armar6_random"
     args, cfg = cli.parse_args(["--task", "balance", "--legs", "controlled", "--alpha", "3"])
     assert (cfg.task, cfg.legs, cfg.robot, cfg.executor, cfg.balance_reward) == ("balance", "controlled", "armar4", "mjx", 1.0)
