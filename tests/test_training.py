@@ -147,18 +147,22 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
 def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
     sys.path.insert(0, str(REPO))
     import train as cli
-    from mjx_pathtrack.training import RECIPES
+    from mjx_pathtrack.training import RECIPES, recipe
 
     args, cfg = cli.parse_args(["--preset", "paper"])
     assert args.out == "runs/iiwa_random_paper"
-    assert cfg == TrainConfig(**RECIPES["paper"]) and cfg.num_timesteps > TrainConfig().num_timesteps
-    # the default recipe, only longer: the privileged critic, the falling learning rate and
-    # predictive braking are the defaults of both
-    assert dataclasses.replace(cfg, num_timesteps=TrainConfig().num_timesteps, num_evals=TrainConfig().num_evals) \
-        == TrainConfig()
+    assert cfg == TrainConfig(**recipe("paper")) and cfg.num_timesteps > TrainConfig().num_timesteps
+    # the default recipe, longer, with the papers' alpha and more train paths: the privileged
+    # critic, the falling learning rate and predictive braking are the defaults of both
+    default = TrainConfig()
+    assert dataclasses.replace(cfg, num_timesteps=default.num_timesteps, num_evals=default.num_evals,
+                               alpha=default.alpha, num_train_paths=default.num_train_paths) == default
+    assert (cfg.alpha, cfg.num_train_paths) == (2.0, 1000)
     assert (cfg.privileged_critic, cfg.final_learning_rate, cfg.end_braking) == (True, 3e-5, "predictive")
     args, cfg = cli.parse_args(["--preset", "paper", "--robot", "armar6", "--num-timesteps", "1000"])
+    # the iiwa's alpha and train paths are not applied to another robot
     assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.num_evals) == ("armar6", 1.0, 1000, RECIPES["paper"]["num_evals"])
+    assert cfg.num_train_paths == 60
     assert args.out == "runs/armar6_random_paper"
     with pytest.raises(SystemExit):
         cli.parse_args(["--preset", "fastest"])
