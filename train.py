@@ -96,7 +96,9 @@ def parse_args(argv=None):
     presets = task_presets()
     if known.task in presets:
         parser.set_defaults(**presets[known.task])
-    parser.set_defaults(**recipe(known.preset, known.robot))
+    # the robot and dataset the robot/task presets and the explicit flags give
+    chosen, _ = parser.parse_known_args(argv)
+    parser.set_defaults(**recipe(known.preset, chosen.robot, chosen.dataset))
     args = parser.parse_args(argv)
     if args.no_ball_reward:
         args.ball_reward = 0.0
@@ -130,9 +132,10 @@ def main(argv=None) -> int:
     if args.sweep:
         from mjx_pathtrack.sweep import steps_mjx_physics
 
-        mjx_pathtrack.prepare_xla(mjx_physics=steps_mjx_physics(args.sweep))
+        mjx_physics = steps_mjx_physics(args.sweep)
     else:
-        mjx_pathtrack.prepare_xla(mjx_physics=config.executor != "kinematic")
+        mjx_physics = config.executor != "kinematic"
+    mjx_pathtrack.prepare_xla(mjx_physics=mjx_physics)
     use_compilation_cache(args.compilation_cache)
     if args.sweep:
         from mjx_pathtrack import sweep

@@ -95,25 +95,24 @@ def combine(summaries: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]
     columns: list[str] = []
     for summary in summaries:
         columns += [k for k in summary if not k.startswith("_") and k not in columns]
-    columns += [f for f in grid if f not in columns]
     rows: list[dict] = []
     seen: set = set()
     for summary in summaries:
         where = FsPath(str(summary["_dir"]))
         for i in range(len(summary["point"])):
-            config = _point_config(where, str(summary["run_dir"][i])) if "run_dir" in summary else {}
             row = {k: summary[k][i] for k in summary if not k.startswith("_")}
-            for f in grid:
-                if f not in row:
-                    value = config.get(f, np.nan)
-                    row[f] = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+            fixed = [f for f in grid if f not in row]
+            config = _point_config(where, str(row["run_dir"])) if fixed and "run_dir" in row else {}
+            for f in fixed:
+                value = config.get(f, np.nan)
+                row[f] = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
             key = tuple(str(row[f]) for f in grid)
             if key in seen:
                 continue
             seen.add(key)
             row["point"] = f"{where.name}/{row['point']}"
-            if "run_dir" in summary:
-                row["run_dir"] = str(where / str(summary["run_dir"][i]))
+            if "run_dir" in row:
+                row["run_dir"] = str(where / str(row["run_dir"]))
             rows.append(row)
     out: dict[str, np.ndarray] = {}
     for key in columns:
@@ -215,8 +214,9 @@ def knots_table(summary: dict[str, np.ndarray]) -> Table:
     cols = ["stop_time_s", "mean_deviation", "max_deviation", "end_reached"]
     rows = _mean_by(summary, "n_next", cols)
     for r in rows:
-        paper = PAPER_TABLE3.get(int(r[0]) + 1, (np.nan,) * 4) if np.isfinite(r[0]) else (np.nan,) * 4
-        r += [int(r[0]) + 1 if np.isfinite(r[0]) else np.nan, paper[0], paper[1]]
+        knots = int(r[0]) + 1 if np.isfinite(r[0]) else np.nan  # the paper's count (PAPER_TABLE3)
+        paper = PAPER_TABLE3.get(knots, (np.nan,) * 4)
+        r += [knots, paper[0], paper[1]]
     return Table("Table III: knots N in the observation", ["N", "points", "duration [s]", "mean dev [rad]",
                                                            "max dev [rad]", "end reached", "knots in the state (N + 1)",
                                                            "paper: duration [s]", "paper: Cart. mean dev [cm]"],

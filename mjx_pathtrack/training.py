@@ -181,23 +181,24 @@ RECIPES = {
     # the default recipe at 40 M steps (docs/results.md "Learning recipe")
     "paper": dict(num_timesteps=40_000_000, num_evals=11),
 }
-#: per robot, a recipe's settings on top of :data:`RECIPES` (they win over the robot's preset)
+#: per (recipe, robot, dataset), settings on top of :data:`RECIPES` where they were measured
+#: (they win over the robot's preset; another robot, dataset or task does not get them)
 ROBOT_RECIPES = {
     # the papers' alpha 2 and 1000 train paths regenerated from the dataset's recipe (the papers'
     # count; 5 min) instead of the 200 committed: 99.5 % end reached, 1.153x TOPP-RA, 0.077 /
     # 0.099 rad after 17 min of training on 2 CPU cores (alpha 3 on the 200: 97.5 %, 1.108x,
     # 0.090 / 0.111 rad; docs/results.md "Learning recipe")
-    ("paper", "iiwa"): dict(alpha=2.0, num_train_paths=1000),
+    ("paper", "iiwa", "random"): dict(alpha=2.0, num_train_paths=1000),
 }
 
 
-def recipe(name: str | None, robot: str = "iiwa") -> dict[str, Any]:
-    """Flag defaults of the training recipe ``name`` (None: none) for ``robot``."""
+def recipe(name: str | None, robot: str = "iiwa", dataset: str = "random") -> dict[str, Any]:
+    """Flag defaults of the training recipe ``name`` (None: none) for ``robot`` on ``dataset``."""
     if name is None:
         return {}
     if name not in RECIPES:
         raise ValueError(f"unknown preset {name!r}; known: {', '.join(sorted(RECIPES))}")
-    return {**RECIPES[name], **ROBOT_RECIPES.get((name, robot), {})}
+    return {**RECIPES[name], **ROBOT_RECIPES.get((name, robot, dataset), {})}
 
 
 def preset(robot: str | None = None, task: str | None = None) -> dict[str, Any]:

@@ -163,6 +163,11 @@ def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
     # the iiwa's alpha and train paths are not applied to another robot
     assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.num_evals) == ("armar6", 1.0, 1000, RECIPES["paper"]["num_evals"])
     assert cfg.num_train_paths == 60
+    # nor to another task or dataset of the iiwa
+    _, cfg = cli.parse_args(["--preset", "paper", "--task", "ball_on_plate"])
+    assert (cfg.alpha, cfg.num_train_paths, cfg.num_timesteps) == (4.0, 0, RECIPES["paper"]["num_timesteps"])
+    _, cfg = cli.parse_args(["--preset", "paper", "--dataset", "target_point"])
+    assert (cfg.alpha, cfg.num_train_paths) == (TrainConfig().alpha, 0)
     assert args.out == "runs/armar6_random_paper"
     with pytest.raises(SystemExit):
         cli.parse_args(["--preset", "fastest"])
