@@ -65,8 +65,8 @@ def main(argv=None) -> int:
         if problem:
             print(f"evaluate.py: error: {problem}", file=sys.stderr)
             return 2
-    from mjx_pathtrack import evaluate_run as R
-    from mjx_pathtrack.datasets import DatasetError
+    from mjx_pathtrack.evaluation import report as R
+    from mjx_pathtrack.paths.datasets import DatasetError
 
     try:
         source = R.load_policy_source(args.source, deterministic=not args.stochastic)
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
         return 2
-    from mjx_pathtrack import jerk_optimum
+    from mjx_pathtrack.evaluation import jerk_optimum
 
     cache = None if args.topp3_cache == "none" else Path(args.topp3_cache or jerk_optimum.default_cache())
     summary, table, first = R.run_evaluation(env, source.policy, robot, args.episodes, args.seed, args.batch,

@@ -5,11 +5,11 @@
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
     python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
-    python train.py --sweep sweep.yaml [--out DIR]  # a grid of runs + summary.csv (mjx_pathtrack.sweep)
+    python train.py --sweep sweep.yaml [--out DIR]  # a grid of runs + summary.csv (mjx_pathtrack.sweeps.run)
     python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)
     python train.py --task balance --legs fixed|controlled   # ARMAR-4 keeping its balance (MJX physics)
 
-A robot or task with a preset (mjx_pathtrack.training.PRESETS, task_presets below) sets the
+A robot or task with a preset (mjx_pathtrack.rl.config.PRESETS, task_presets below) sets the
 papers' values as the defaults of the other flags; flags given explicitly still win.
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
@@ -29,7 +29,7 @@ import mjx_pathtrack
 
 def task_presets() -> dict[str, dict]:
     """``--task NAME`` -> TrainConfig defaults of that task (explicit flags still override them)."""
-    from mjx_pathtrack.tasks import ball_on_plate
+    from mjx_pathtrack.envs.tasks import ball_on_plate
 
     return {"ball_on_plate": {**ball_on_plate.PRESET, "out": "runs/ball_on_plate"}}
 
@@ -44,15 +44,15 @@ def _optional(kind):
 
 
 def parse_args(argv=None):
-    from mjx_pathtrack.env import END_BRAKING, KNOTS_FRAMES
-    from mjx_pathtrack.training import EXECUTORS, RECIPES, TASKS, TrainConfig, preset, recipe
+    from mjx_pathtrack.envs.tracking import END_BRAKING, KNOTS_FRAMES
+    from mjx_pathtrack.rl.config import EXECUTORS, RECIPES, TASKS, TrainConfig, preset, recipe
 
     defaults = TrainConfig()
     choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "
-                             "(mjx_pathtrack.training.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
+                             "(mjx_pathtrack.rl.config.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
                              "1000 train paths, ~25 min on 2 CPU cores)")
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
@@ -60,7 +60,7 @@ def parse_args(argv=None):
                         help="run directory (config, logs, checkpoints; default runs/<robot>_<dataset> "
                              "or runs/balance_<legs>), or with --sweep the sweep's output directory")
     parser.add_argument("--sweep", default=None, metavar="FILE",
-                        help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweep.py); the training "
+                        help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweeps/run.py); the training "
                              "flags below are then ignored: put them in the file's 'base'")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out exactly from its last checkpoint (same config)")
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     # the CPU flag batched MJX needs; without MJX physics XLA's default CPU fusion emitters train
     # faster (mjx_pathtrack/_xla.py); a user's own flag is kept
     if args.sweep:
-        from mjx_pathtrack.sweep import steps_mjx_physics
+        from mjx_pathtrack.sweeps.spec import steps_mjx_physics
 
         mjx_physics = steps_mjx_physics(args.sweep)
     else:
@@ -138,15 +138,17 @@ def main(argv=None) -> int:
     mjx_pathtrack.prepare_xla(mjx_physics=mjx_physics)
     use_compilation_cache(args.compilation_cache)
     if args.sweep:
-        from mjx_pathtrack import sweep
+        from mjx_pathtrack.sweeps import run as sweep
 
         return sweep.main([args.sweep] + (["--out", args.out] if args.out else []))
     import jax
 
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    from mjx_pathtrack.datasets import DatasetError
-    from mjx_pathtrack.training import ConfigError, RunDirError, TrainingDiverged, train
+    from mjx_pathtrack.paths.datasets import DatasetError
+    from mjx_pathtrack.rl.checkpoint import RunDirError
+    from mjx_pathtrack.rl.config import ConfigError
+    from mjx_pathtrack.rl.training import TrainingDiverged, train
 
     print(f"devices: {jax.devices()}", flush=True)
     try:

@@ -4,7 +4,7 @@ Run: python benchmarks/bench_balance.py [--batch 1024] [--repeats 3] [--legs fix
 
 Measures, in one run and at the same batch size, the jitted, vmapped ``env.step`` of
 
-* the balance environment (:mod:`mjx_pathtrack.tasks.humanoid_balance`, ``armar4_legs``: 30
+* the balance environment (:mod:`mjx_pathtrack.envs.tasks.humanoid_balance`, ``armar4_legs``: 30
   servo-controlled joints, floating base, two soles on a floor, 24 physics steps per decision step),
 * the reference: the iiwa path-tracking environment with the MJX executor (7 joints, no contacts),
 
@@ -26,11 +26,11 @@ mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import numpy as np
 
-from mjx_pathtrack import spline as S
-from mjx_pathtrack.env import EnvConfig, PathTrackingEnv
-from mjx_pathtrack.executors import MjxExecutor
-from mjx_pathtrack.robots import load_robot
-from mjx_pathtrack.tasks import humanoid_balance as H
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
+from mjx_pathtrack.envs.executors import MjxExecutor
+from mjx_pathtrack.robots.registry import load_robot
+from mjx_pathtrack.envs.tasks import humanoid_balance as H
 
 
 def synthetic_paths(robot, n_paths: int = 8, n_knots: int = 20, seed: int = 0) -> S.Path:

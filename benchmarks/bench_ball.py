@@ -20,8 +20,9 @@ mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 
-from mjx_pathtrack.tasks import ball_on_plate as BP
-from mjx_pathtrack.training import TrainConfig, make_env
+from mjx_pathtrack.envs.tasks import ball_on_plate as BP
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import make_env
 
 
 def measure(env, batch: int, steps: int) -> dict:

@@ -25,9 +25,10 @@ mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 
-from mjx_pathtrack import limits as L
-from mjx_pathtrack.training import TrainConfig, make_env
-from mjx_pathtrack.wrappers import wrap_for_training
+from mjx_pathtrack.core import limits as L
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import make_env
+from mjx_pathtrack.envs.wrappers import wrap_for_training
 
 
 def rate(fn, arg_cycle, batch, repeats):

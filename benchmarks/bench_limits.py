@@ -16,9 +16,9 @@ import mjx_pathtrack
 mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 
-from mjx_pathtrack import iiwa
-from mjx_pathtrack import limits as L
-from mjx_pathtrack.iiwa import ACC, POS, VEL
+from mjx_pathtrack.robots import iiwa
+from mjx_pathtrack.core import limits as L
+from mjx_pathtrack.robots.iiwa import ACC, POS, VEL
 
 
 def states(batch: int, seed: int = 0):

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
-from mjx_pathtrack.robots import load_robot
+from mjx_pathtrack.robots.registry import load_robot
 
 IIWA_FLOOR = 100_000
 

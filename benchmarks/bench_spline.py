@@ -23,7 +23,7 @@ mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 import jax
 import jax.numpy as jnp
 
-from mjx_pathtrack import spline as S
+from mjx_pathtrack.core import spline as S
 
 
 def random_knots(n_knots: int, rng: np.random.Generator) -> np.ndarray:

@@ -8,9 +8,9 @@ one process, compilation included (as a sweep pays it):
 
 * ``brax``: ``brax.training.agents.ppo.train`` once per point (the sequential sweep's trainer,
   without its evaluations and checkpoints); every call compiles again;
-* ``batched K=1``: :mod:`mjx_pathtrack.batched_ppo` with one member, compiled once and called
+* ``batched K=1``: :mod:`mjx_pathtrack.rl.batched_ppo` with one member, compiled once and called
   per point (alpha and seed are arguments, not constants);
-* ``vmapped``: :mod:`mjx_pathtrack.batched_ppo` with all K members in one program.
+* ``vmapped``: :mod:`mjx_pathtrack.rl.batched_ppo` with all K members in one program.
 
 For the two batched ways it also prints the steady-state time (a second call, compiled). The
 ratios printed are sequential time / vmapped time (> 1: vmapped is faster).
@@ -29,9 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack import batched_ppo as B
-from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks
-from mjx_pathtrack.wrappers import wrap_for_training
+from mjx_pathtrack.rl import batched_ppo as B
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import make_env, ppo_networks
+from mjx_pathtrack.envs.wrappers import wrap_for_training
 
 
 def brax_train(config: TrainConfig, env) -> float:

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 
 from bench_env import rate, rollout_states  # same directory: the timing loop and states of the env benchmark
 from mjx_pathtrack import _xla
-from mjx_pathtrack.training import TrainConfig, make_env, ppo_networks, train
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import make_env, ppo_networks, train
 
 
 def main() -> None:

@@ -7,7 +7,7 @@ environments). XLA reads ``XLA_FLAGS`` once, when the first backend is
 initialised, so the flag has to be in the environment before then. Importing the package
 changes nothing; its entry points (``train.py``, ``evaluate.py``, the benchmarks and scripts)
 call :func:`prepare` first, and so should a user's own program that runs batched MJX on a CPU
-(``mjx_pathtrack.prepare_xla()``; :class:`~mjx_pathtrack.executors.MjxExecutor` warns when the
+(``mjx_pathtrack.prepare_xla()``; :class:`~mjx_pathtrack.envs.executors.MjxExecutor` warns when the
 flag is missing).
 
 The flag only affects the CPU backend, so setting it on a GPU/TPU run is

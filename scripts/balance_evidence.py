@@ -40,7 +40,9 @@ def make_dataset(root: Path, n_train: int, n_test: int) -> None:
     mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
     import numpy as np
 
-    from mjx_pathtrack import datasets, generate, robots
+    from mjx_pathtrack.paths import datasets
+    from mjx_pathtrack.paths import generate
+    from mjx_pathtrack.robots import registry as robots
 
     loaded = robots.load_robot("armar4")
     joints = np.flatnonzero(loaded.path_mask)

@@ -21,10 +21,10 @@ import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mjx_pathtrack import generate  # noqa: E402
-from mjx_pathtrack import limits as L  # noqa: E402
-from mjx_pathtrack.robots import load_robot  # noqa: E402
-from mjx_pathtrack.tasks.humanoid_balance import FALL_TILT  # noqa: E402
+from mjx_pathtrack.paths import generate  # noqa: E402
+from mjx_pathtrack.core import limits as L  # noqa: E402
+from mjx_pathtrack.robots.registry import load_robot  # noqa: E402
+from mjx_pathtrack.envs.tasks.humanoid_balance import FALL_TILT  # noqa: E402
 
 
 def main() -> int:

@@ -4,7 +4,7 @@ velocity per decision frequency) and Table I (penalty baselines vs the safe acti
     python scripts/paper001_experiments.py --out runs/paper001            # all runs (1,480 s on 2 CPU cores shared with other runs)
     python scripts/paper001_experiments.py --out runs/paper001 --tables-only   # rebuild tables from reports
 
-Runs PPO (:mod:`mjx_pathtrack.tasks.velocity_max_train`) for ``mode="safe"`` at 10, 20, 120 and
+Runs PPO (:mod:`mjx_pathtrack.rl.velocity_max_train`) for ``mode="safe"`` at 10, 20, 120 and
 240 Hz and for ``penalty_soft`` / ``penalty_hard`` at 20 and 240 Hz (Table I's frequencies), one
 run directory each (``<out>/<mode>_<hz>``); a run whose ``report.json`` exists for the same config
 is reused. Writes ``<out>/results.json`` and ``<out>/tables.md``. Budgets (env steps per run) fit
@@ -23,8 +23,8 @@ import time
 from pathlib import Path
 
 from mjx_pathtrack.fileio import atomic_write_bytes  # first: CPU XLA flags before JAX starts
-from mjx_pathtrack.tasks import velocity_max as V
-from mjx_pathtrack.tasks import velocity_max_train as T
+from mjx_pathtrack.envs.tasks import velocity_max as V
+from mjx_pathtrack.rl import velocity_max_train as T
 
 #: env steps per run at each frequency (scaled by --budget-scale)
 BUDGET = {10: 750_000, 20: 1_000_000, 120: 10_000_000, 240: 12_000_000}

@@ -2,7 +2,7 @@
 
     python scripts/velocity_policy_diag.py RUN_DIR [--seed 3]
 
-``RUN_DIR`` is a run of ``python -m mjx_pathtrack.tasks.velocity_max train`` (config.json +
+``RUN_DIR`` is a run of ``python -m mjx_pathtrack.rl.velocity_max_train train`` (config.json +
 params.pkl). The optimal policy takes a = sign(v) = ±1 and reverses at the position limits, so
 the script prints per joint: mean |a| (the action before the environment clips it to [-1, 1]),
 the share of steps with |a| > 0.95, the share of moving steps (|v| > 0.05 v_max) in which
@@ -16,7 +16,7 @@ import json
 import pickle
 from pathlib import Path
 
-from mjx_pathtrack.tasks import velocity_max_train as T  # first: the package sets the XLA flags
+from mjx_pathtrack.rl import velocity_max_train as T  # first: the package sets the XLA flags
 
 import jax
 import numpy as np
@@ -30,7 +30,7 @@ def main() -> None:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
-    from mjx_pathtrack.training import ppo_networks
+    from mjx_pathtrack.rl.training import ppo_networks
 
     run = Path(args.run)
     saved = json.loads((run / "config.json").read_text())

@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack import iiwa
-from mjx_pathtrack import limits as L
+from mjx_pathtrack.robots import iiwa
+from mjx_pathtrack.core import limits as L
 
 IIWA_POS, IIWA_VEL, IIWA_ACC = iiwa.POS, iiwa.VEL, iiwa.ACC
 iiwa_limits = iiwa.joint_limits

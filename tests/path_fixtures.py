@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from mjx_pathtrack import iiwa, spline as S
+from mjx_pathtrack.robots import iiwa
+from mjx_pathtrack.core import spline as S
 
 
 def random_walk_paths(n_paths=6, n_knots=30, seed=0, max_knots=32):

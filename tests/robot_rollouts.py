@@ -1,6 +1,6 @@
 """Test helper: random safe setpoint trajectories from limits.py, sampled per physics step.
 
-Used by the tracking tests (MJX and MuJoCo C) of tests/test_robots.py.
+Used by the tracking tests (MJX and MuJoCo C) of tests/robots/test_registry.py.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack import limits as L
+from mjx_pathtrack.core import limits as L
 
 
 def safe_setpoints(robot, key, n_steps: int, batch: int):

@@ -196,8 +196,8 @@ def test_prepare_without_mjx_drops_only_the_flag_a_parent_added():
 
 def test_mjx_executor_warns_without_the_flag_and_names_the_fix():
     code = ("import warnings\n"
-            "from mjx_pathtrack.executors import MjxExecutor\n"
-            "from mjx_pathtrack.robots import load_robot\n"
+            "from mjx_pathtrack.envs.executors import MjxExecutor\n"
+            "from mjx_pathtrack.robots.registry import load_robot\n"
             "robot = load_robot('iiwa')\n"
             "with warnings.catch_warnings(record=True) as w:\n"
             "    warnings.simplefilter('always')\n"

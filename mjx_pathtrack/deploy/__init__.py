@@ -1,0 +1,5 @@
+"""Deployment: the exported jitted policy and the online controller that runs it.
+
+- :mod:`~mjx_pathtrack.deploy.export`: ``export_policy`` / ``load_policy`` (a directory with a manifest);
+- :mod:`~mjx_pathtrack.deploy.controller`: ``OnlineTracker``, the policy in a real-time loop.
+"""

@@ -1,0 +1,161 @@
+"""Export a trained policy as a serialized jitted function, and load it without the training stack.
+
+An export directory holds ``policy.jaxexport`` -- the deterministic policy (observation
+normalisation, network, tanh mean) serialized with ``jax.export`` for any batch size -- and
+``manifest.json`` (robot, joint names, limits, Δt, N knots, observation layout, shapes, package
+and JAX versions). :func:`load_policy` needs only ``jax`` and ``numpy``: no Brax, no Flax, no
+training code. Files are written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_pathtrack.fileio import atomic_write_bytes
+
+FORMAT_VERSION = 1
+POLICY_FILE = "policy.jaxexport"
+MANIFEST_FILE = "manifest.json"
+
+
+#: manifest keys that loading and the controller rely on, with their JSON types
+_NUMBER = (int, float)
+REQUIRED_KEYS = {"robot": (str, "a string"), "joint_names": (list, "a list"), "path_joints": (list, "a list"),
+                 "dt": (_NUMBER, "a number"), "n_next": (int, "an integer"), "max_dis_between_knots": (_NUMBER, "a number"),
+                 "limits": (dict, "an object"), "observation_size": (int, "an integer"), "action_size": (int, "an integer")}
+
+
+class ExportError(ValueError):
+    """A missing, corrupt or incompatible export; the message says which."""
+
+
+def _finite_or_none(values) -> list:
+    return [float(x) if math.isfinite(float(x)) else None for x in np.asarray(values).ravel()]
+
+
+def observation_layout(n_joints: int, n_path: int, n_next: int,
+                       extra: list[tuple[str, int]] = ()) -> list[dict]:
+    """Named slices of the observation (docs/method.md §4): ``[{name, start, size}, ...]``; ``extra``:
+    the task's sensor blocks ``[(name, size), ...]`` appended at the end."""
+    blocks = [("position", n_joints), ("velocity", n_joints), ("acceleration", n_joints),
+              ("knots", n_path * (n_next + 1)), ("offset_from_first_knot", 1), ("state_path_length", 1),
+              ("knot_distances", n_next), *extra]
+    layout, start = [], 0
+    for name, size in blocks:
+        layout.append({"name": name, "start": start, "size": size})
+        start += size
+    return layout
+
+
+def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, robot_name: str,
+                  joint_names) -> Path:
+    """Write ``out_dir/{policy.jaxexport, manifest.json}`` for Brax PPO ``params`` on ``env``
+    (a :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv`). Returns ``out_dir``."""
+    from mjx_pathtrack import __version__
+
+    out = Path(out_dir)
+    inference = make_inference_fn(params, deterministic=True)
+    key = jax.random.PRNGKey(0)  # unused by the deterministic policy
+
+    def policy(obs):  # the environment clips actions to [-1, 1]; the export does it itself
+        return jnp.clip(inference(obs, key)[0], -1.0, 1.0)
+
+    obs_size, act_size = int(env.observation_size), int(env.action_size)
+    batch = jax.export.symbolic_shape("batch")[0]
+    exported = jax.export.export(jax.jit(policy))(jax.ShapeDtypeStruct((batch, obs_size), jnp.float32))
+    lim = env.limits
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "package_version": __version__,
+        "jax_version": jax.__version__,
+        "robot": robot_name,
+        "task": env.task_name,
+        "joint_names": list(joint_names),
+        "path_joints": [int(i) for i in env.path_joints],
+        "dt": float(env.config.dt),
+        "n_next": int(env.config.n_next),
+        "knots_frame": env.config.knots_frame,
+        "end_braking": env.config.end_braking,
+        "max_dis_between_knots": float(env.max_dis),
+        "limits": {"pos_min": _finite_or_none(lim.pos_min), "pos_max": _finite_or_none(lim.pos_max),
+                   "vel": _finite_or_none(lim.vel), "acc": _finite_or_none(lim.acc),
+                   "jerk": _finite_or_none(lim.jerk)},
+        "observation_size": obs_size,
+        "action_size": act_size,
+        "observation_layout": observation_layout(lim.n_joints, len(env.path_joints), int(env.config.n_next),
+                                                 env.extra_observation_blocks()),
+        "input": {"shape": ["batch", obs_size], "dtype": "float32", "range": [-1.0, 1.0]},
+        "output": {"shape": ["batch", act_size], "dtype": "float32", "range": [-1.0, 1.0],
+                   "meaning": "action per joint, mapped into the safe acceleration range"},
+    }
+    atomic_write_bytes(out / POLICY_FILE, bytes(exported.serialize()))
+    atomic_write_bytes(out / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
+    return out
+
+
+@dataclass(frozen=True)
+class ExportedPolicy:
+    """A loaded export: call it with observations ``[B, obs_size]`` (or ``[obs_size]``) to get
+    actions ``[B, n]`` (or ``[n]``) in [-1, 1]."""
+
+    manifest: dict
+    _exported: jax.export.Exported
+
+    @property
+    def observation_size(self) -> int:
+        return int(self.manifest["observation_size"])
+
+    def __call__(self, obs) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        single = obs.ndim == 1
+        batch = obs[None] if single else obs
+        if batch.ndim != 2 or batch.shape[1] != self.observation_size:
+            raise ExportError(f"observation must have shape [{self.observation_size}] or [B, {self.observation_size}] "
+                              f"for robot {self.manifest['robot']}, got {obs.shape}")
+        if not np.all(np.isfinite(batch)):
+            raise ExportError("observation contains NaN or inf")
+        action = np.asarray(self._exported.call(jnp.asarray(batch)))
+        return action[0] if single else action
+
+
+def load_policy(path: str | os.PathLike) -> ExportedPolicy:
+    """Load an export directory written by :func:`export_policy` (needs only jax and numpy)."""
+    root = Path(path)
+    manifest_file, policy_file = root / MANIFEST_FILE, root / POLICY_FILE
+    if not root.is_dir():
+        raise ExportError(f"no exported policy at {root} (directory missing)")
+    for f in (manifest_file, policy_file):
+        if not f.is_file():
+            raise ExportError(f"incomplete export at {root}: {f.name} missing")
+    try:
+        manifest = json.loads(manifest_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ExportError(f"corrupt manifest {manifest_file}: {e}") from e
+    if not isinstance(manifest, dict):
+        raise ExportError(f"{manifest_file}: not a manifest (a JSON object), got {type(manifest).__name__}")
+    version = manifest.get("format_version")
+    if version != FORMAT_VERSION:
+        raise ExportError(f"{manifest_file}: export format version {version}, this package reads {FORMAT_VERSION}")
+    for key, (kind, what) in REQUIRED_KEYS.items():
+        value = manifest.get(key)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise ExportError(f"{manifest_file}: key {key!r} is {'missing' if value is None else repr(value)}, "
+                              f"must be {what}")
+    try:
+        exported = jax.export.deserialize(bytearray(policy_file.read_bytes()))
+    except Exception as e:  # flatbuffer / version errors of jax.export
+        raise ExportError(f"corrupt or incompatible policy file {policy_file} (exported with jax "
+                          f"{manifest.get('jax_version')}, running {jax.__version__}): {e}") from e
+    shape = exported.in_avals[0].shape
+    if len(shape) != 2 or int(shape[1]) != manifest["observation_size"]:
+        raise ExportError(f"{policy_file}: input shape {shape} does not match the manifest's "
+                          f"observation size {manifest['observation_size']}")
+    return ExportedPolicy(manifest, exported)

@@ -1,0 +1,286 @@
+"""Ball on plate (paper 000 §IV-B, docs/method.md §2.4, §4, docs/robots.md §4): track a ball-balancing path with the
+iiwa while a free ball rolls on the plate at its flange (MJX physics, ``iiwa_ball`` scene).
+
+:class:`BallOnPlateEnv` is a :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv` whose executor
+(:class:`BallExecutor`) also simulates the ball; it adds, per step:
+
+* observation (docs/method.md §4 item 8): the Cartesian reference point (FK of the reference at
+  the new arc position, target site ``iiwa_link_ee``) normalised over x, y in [-1, 1] m, z in
+  [-0.7, 1.3] m; the reference point minus the executed end point, normalised by 0.1 m; with
+  ``sensor``, the ball position in the plate frame of the previous and current step,
+  ``(x_rel, y_rel) = xy / (0.5 plate size - 0.03 m)``. Size 72 with the sensor, 68 without
+  (``N = 4``, 7 joints), as the papers' ball nets;
+* reward ``ball * R_ball`` (:func:`mjx_pathtrack.core.reward.ball_reward`). The published code computes
+  ``1 - max(x_rel, y_rel)`` without ``abs``, so only displacements towards +x/+y are penalised --
+  a bug; we use the absolute displacement ``1 - max(|x_rel|, |y_rel|)``;
+* termination when the ball leaves the plate (``|x_rel| >= 1`` or ``|y_rel| >= 1`` or its centre
+  below the plate surface): metric ``ball_fell``.
+
+Per episode the ball's radius (20-36 mm), mass (2-203 g), rolling and torsional friction
+(1e-4..6e-4, the papers' ranges; contact ``condim = 6`` here so that they act) and start position
+(±0.0797 m x ±0.0458 m) are drawn. The ball's model parameters are re-derived every step from a
+per-environment key, so a batch of environments shares one ``mjx.Model``.
+
+The papers' ball nets (docs/method.md §2.4, §3, docs/training.md §1): N = 4, alpha = 4, deviation weights 0.9/0.9,
+no action reward, 6 s per path, whole paths (no sub-paths), no forced braking at the end (the
+episode runs to its time budget).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from mjx_pathtrack import _quiet  # noqa: F401,I001  (before brax / mujoco.mjx: silences their Warp notices)
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from mjx_pathtrack.robots import ball_scene as B
+from mjx_pathtrack.core import reward as R
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
+from mjx_pathtrack.envs.executors import setpoints
+
+Array = jax.Array
+
+#: docs/method.md §4 item 8: Cartesian range of the reference point [m] (scene 8) and of the relative point
+TARGET_RANGE_LO = (-1.0, -1.0, -0.7)
+TARGET_RANGE_HI = (1.0, 1.0, 1.3)
+RELATIVE_RANGE = 0.1
+#: rolling and torsional friction range of the ball (docs/robots.md §1) [m]
+FRICTION_RANGE = (1e-4, 6e-4)
+#: dataset of the task (splines/iiwa/ball_balancing)
+DATASET = ("iiwa", "ball_balancing")
+
+
+#: observation blocks added after the path-tracking observation (docs/method.md §4 item 8), in order
+CARTESIAN_BLOCKS = (("target_point", 3), ("target_minus_executed_point", 3))
+SENSOR_BLOCKS = (("ball_xy_previous", 2), ("ball_xy", 2))  # only with the ball sensor
+
+
+def extra_blocks(sensor: bool) -> tuple[tuple[str, int], ...]:
+    """The blocks the task adds to the path-tracking observation, with or without the ball sensor."""
+    return CARTESIAN_BLOCKS + (SENSOR_BLOCKS if sensor else ())
+
+
+@dataclasses.dataclass(frozen=True)
+class BallConfig:
+    """Task settings. ``reward``: weight of R_ball (0: off); ``sensor``: ball position in the
+    observation; ``terminate``: end the episode when the ball leaves the plate."""
+
+    reward: float = 1.0
+    sensor: bool = True
+    terminate: bool = True
+
+
+def env_config(duration: float = 6.0, terminate_deviation: float | None = 0.25, **overrides) -> EnvConfig:
+    """The papers' ball-net settings (see module docstring) as an :class:`EnvConfig`."""
+    weights = R.RewardWeights(alpha=4.0, max_deviation=0.9, mean_deviation=0.9, action=0.0)
+    base = dict(n_next=4, duration=duration, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
+                terminate_deviation=terminate_deviation, brake_at_end=False, terminate_on_stop=False,
+                deviation_weights=(1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6), reward=weights)
+    return EnvConfig(**{**base, **overrides})
+
+
+class BallState(NamedTuple):
+    """Executor state of one environment: ``data`` (``mjx.Data``); ``key``: the episode's ball
+    parameters (radius, mass, friction are re-derived from it); ``ball_prev``/``ball`` ``[3]``:
+    ball centre in the plate frame [m] before/after the last step; ``target``/``relative``
+    ``[3]``: Cartesian reference point and reference minus executed end point [m]."""
+
+    data: Any
+    key: Array
+    ball_prev: Array
+    ball: Array
+    target: Array
+    relative: Array
+
+
+class BallExecutor:
+    """Servo-controlled MJX physics of the ``iiwa_ball`` scene with a randomised ball (one
+    environment per call; vmap for batches). Same interface as
+    :class:`~mjx_pathtrack.envs.executors.MjxExecutor`, plus :meth:`randomize`."""
+
+    name = "mjx"
+
+    def __init__(self, robot):
+        if "ball" not in [robot.mj_model.body(i).name for i in range(robot.mj_model.nbody)]:
+            raise ValueError(f"robot {robot.name!r} has no ball; use robots.load_robot('iiwa_ball')")
+        model = copy.copy(robot.mj_model)
+        self.ids = B.ball_ids(model)
+        plate_geom = model.geom("plate").id
+        model.geom_condim[self.ids[1]] = 6  # rolling/torsional friction act
+        model.geom_friction[plate_geom] = [1.0, 0.0, 0.0]  # contact friction = max of both: the ball's
+        self.mj_model = model
+        self.robot = robot
+        self.mjx_model = mjx.put_model(model)
+        self.substeps = int(robot.n_substeps)
+        self.plate_site = model.site("plate").id
+        self.ball_qpos = int(model.jnt_qposadr[model.joint("ball").id])
+        self.sensor_adr = int(model.sensor_adr[model.sensor("ball_in_plate").id])
+        self.target_site = int(np.asarray(robot.site_ids)[0])
+        data = mujoco.MjData(model)
+        data.qpos[:] = robot.qpos0
+        data.ctrl[:] = np.concatenate([robot.q0, np.zeros(robot.n_joints)])
+        mujoco.mj_forward(model, data)
+        self._data0 = mjx.put_data(model, data)
+
+    def model(self, key: Array):
+        """The episode's ``mjx.Model`` (ball radius, mass, friction drawn from ``key``) and the radius."""
+        model, radius, _ = B.randomize_ball(self.mjx_model, key, *self.ids)
+        spin, roll = jax.random.uniform(jax.random.fold_in(key, 1), (2,), minval=FRICTION_RANGE[0],
+                                        maxval=FRICTION_RANGE[1])
+        friction = model.geom_friction.at[self.ids[1]].set(jnp.stack([1.0, spin, roll]))
+        return model.tree_replace({"geom_friction": friction}), radius
+
+    def init(self, p0: Array) -> BallState:
+        """Robot at rest at ``p0`` [7], default ball at the plate centre (kinematics only)."""
+        r = self.robot
+        data = self._data0.replace(qpos=jnp.asarray(self._data0.qpos).at[r.qpos_adr].set(p0),
+                                   qvel=jnp.zeros_like(self._data0.qvel), ctrl=r.ctrl(p0, jnp.zeros_like(p0)))
+        data = mjx.kinematics(self.mjx_model, data)
+        state = BallState(data, jax.random.PRNGKey(0), jnp.zeros(3), jnp.zeros(3),
+                          data.site_xpos[self.target_site], jnp.zeros(3))
+        return self.place_ball(state, jnp.zeros(2), jnp.asarray(B.BALL_RADIUS, jnp.float32))
+
+    def place_ball(self, state: BallState, xy: Array, radius: Array) -> BallState:
+        """Ball at rest on the plate at ``xy [2]`` [m] (plate frame) using the plate pose in ``state.data``."""
+        d = state.data
+        pose = B.ball_pose_on_plate(d.site_xpos[self.plate_site], d.site_xmat[self.plate_site], xy, radius)
+        data = d.replace(qpos=d.qpos.at[self.ball_qpos:self.ball_qpos + 7].set(pose))
+        ball = jnp.concatenate([xy, radius[None]])
+        return state._replace(data=data, ball_prev=ball, ball=ball)
+
+    def randomize(self, state: BallState, key: Array) -> BallState:
+        """New ball parameters and start position from ``key`` (robot pose unchanged)."""
+        k_model, k_xy = jax.random.split(key)
+        _, radius = self.model(k_model)
+        return self.place_ball(state._replace(key=k_model), B.sample_start_xy(k_xy), radius)
+
+    def execute(self, state: BallState, p, v, a0, a1, dt):
+        r = self.robot
+        model, _ = self.model(state.key)
+        q_set, v_mid = setpoints(p, v, a0, a1, dt, self.substeps)
+
+        def physics(data, k):
+            data = mjx.step(model, data.replace(ctrl=r.ctrl(q_set[k], v_mid[k])))
+            return data, data.qpos[r.qpos_adr]
+
+        start = state.data.qpos[r.qpos_adr]
+        data, measured = jax.lax.scan(physics, state.data, jnp.arange(self.substeps))
+        ball = data.sensordata[self.sensor_adr:self.sensor_adr + 3]
+        new = state._replace(data=data, ball_prev=state.ball, ball=ball)
+        return new, jnp.concatenate([start[None], measured]), {"ball": ball}
+
+
+class BallOnPlateEnv(PathTrackingEnv):
+    """Path tracking with a ball on the plate (module docstring). Arguments as
+    :class:`PathTrackingEnv` with a :class:`BallExecutor`; ``ball``: :class:`BallConfig`."""
+
+    def __init__(self, limits, paths, max_dis_between_knots, config: EnvConfig, executor: BallExecutor,
+                 ball: BallConfig = BallConfig(), path_joints=None, home=None):
+        if not isinstance(executor, BallExecutor):
+            raise ValueError("BallOnPlateEnv needs a BallExecutor")
+        super().__init__(limits, paths, max_dis_between_knots, config, path_joints, home, executor)
+        self.ball_config = ball
+        self._half_range = jnp.asarray(R.BALL_HALF_RANGE, jnp.float32)
+
+    task_name = "ball_on_plate"
+    #: what a task failure (``task_failed``) means here (evaluate.py: "ball fell in x % of the episodes")
+    task_failure = "ball_fell"
+
+    def extra_observation_blocks(self) -> list[tuple[str, int]]:
+        return list(extra_blocks(self.ball_config.sensor))
+
+    def metric_names(self) -> tuple[str, ...]:
+        return super().metric_names() + ("reward/ball", "ball_fell")
+
+    def initial_state(self, rng: Array, index: Array | None = None):
+        track = super().initial_state(rng, index)
+        executor = self.executor.randomize(track.executor, jax.random.fold_in(rng, 7))
+        return track._replace(executor=executor)
+
+    def off_plate(self, ball: Array) -> Array:
+        """True if the ball centre ``[3]`` (plate frame) is beyond the normalised range or below the surface."""
+        rel = ball[:2] / self._half_range
+        return jnp.any(jnp.abs(rel) >= 1.0) | (ball[2] < 0.0)
+
+    def transition(self, track, action: Array):
+        new, reward, done, metrics = super().transition(track, action)
+        ex = new.executor
+        # Cartesian reference point at the new arc position and the executed end point
+        q_ref = self.home.at[self.path_joints].set(S.point_at(self.reference(new), new.s))
+        q_end = new.executor.data.qpos[self.executor.robot.qpos_adr]
+        pos, _ = self.executor.robot.fk(jnp.stack([q_ref, q_end]))
+        new = new._replace(executor=ex._replace(target=pos[0, 0], relative=pos[0, 0] - pos[1, 0]))
+        # a fall also spoils success when it does not end the episode (trained without the ball)
+        metrics = {**metrics, "success": metrics["success"] * (1.0 - metrics["ball_fell"])}
+        return new, reward, done, metrics
+
+    def task_step(self, before, after, sensors):
+        """R_ball and the fall (``ball_fell``; a task failure that ends the episode when
+        ``ball_config.terminate``)."""
+        del before, sensors
+        ball = after.executor.ball
+        fell = self.off_plate(ball)
+        failed = fell if self.ball_config.terminate else jnp.zeros((), bool)
+        return ({"ball": self.ball_config.reward * R.ball_reward(ball[:2])}, failed,
+                {"ball_fell": fell.astype(jnp.float32)})
+
+    def observe(self, track) -> Array:
+        ex = track.executor
+        lo, hi = jnp.asarray(TARGET_RANGE_LO), jnp.asarray(TARGET_RANGE_HI)
+        extras = [-1.0 + 2.0 * (ex.target - lo) / (hi - lo), ex.relative / RELATIVE_RANGE]
+        if self.ball_config.sensor:
+            extras += [ex.ball_prev[:2] / self._half_range, ex.ball[:2] / self._half_range]
+        return jnp.clip(jnp.concatenate([super().observe(track)] + extras), -1.0, 1.0)
+
+
+def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) -> int:
+    """docs/method.md §4: ``3 n + n (N + 1) + 2 + N + 6 (+ 4 with the ball sensor)``."""
+    return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra_blocks(sensor))
+
+
+def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallConfig = BallConfig(),
+             reflections: bool = False, dt: float = 0.1, root=None) -> BallOnPlateEnv:
+    """The task on ``splines/iiwa/ball_balancing/<split>``; ``reflections``: add the dataset's
+    reflected copies of every path (docs/paths.md §5, 4x augmentation)."""
+    from mjx_pathtrack.paths import datasets
+    from mjx_pathtrack.robots import registry as robots
+    from mjx_pathtrack.paths.ball import REFLECTION_VECTORS, reflect_paths
+
+    robot = robots.load_robot("iiwa_ball", dt=dt)
+    meta = datasets.read_config(*DATASET, root)
+    knots = datasets.load_split(*DATASET, split, root)
+    if reflections:
+        knots = reflect_paths(knots, meta.get("reflection_vectors") or REFLECTION_VECTORS)
+    paths = S.stack_fits(S.fit_spline(k) for k in knots)
+    cfg = env_config() if config is None else config
+    return BallOnPlateEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), cfg, BallExecutor(robot), ball,
+                          home=robot.q0)
+
+
+#: ``train.py --task ball_on_plate``: the papers' ball-net settings and a CPU-sized PPO budget
+PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", executor="mjx", n_next=4, alpha=4.0,
+              beta=0.9, action_reward=0.0, duration=6.0, terminate_deviation=0.25, ball_reward=1.0,
+              num_envs=128, batch_size=128, num_minibatches=4, unroll_length=10, num_updates_per_batch=4,
+              num_timesteps=300_000, num_evals=2, eval_episodes=64)
+
+
+def from_train_config(config, split: str = "train", evaluation: bool = False) -> BallOnPlateEnv:
+    """The task for a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task='ball_on_plate'``).
+
+    ``config.ball_reward > 0``: R_ball with that weight, ball sensor observed, episode ends when
+    the ball falls. ``ball_reward == 0``: the papers' "no balancing reward" net -- trained on the
+    same paths with the ball simulated but neither observed, rewarded nor ending the episode;
+    ``evaluation=True`` still ends episodes when it falls (the reported failure). The train split
+    gets the 4 reflections of every path (docs/paths.md §5)."""
+    with_ball = config.ball_reward > 0
+    env_cfg = dataclasses.replace(config.env_config(), start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
+                                  brake_at_end=False, terminate_on_stop=False)
+    ball = BallConfig(reward=float(config.ball_reward), sensor=with_ball, terminate=with_ball or evaluation)
+    return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.dt, root=config.dataset_root)

@@ -1,0 +1,258 @@
+"""ARMAR-4 keeping its balance while its upper body tracks a path (paper 000 §IV-B, docs/method.md §2.4, §4).
+
+The robot is ``armar4_legs`` of :mod:`mjx_pathtrack.robots.registry`: a floating base (the pelvis link
+``base``) standing on two flat soles on a floor, MJX physics with foot-floor contacts and few
+solver iterations. The reference path covers the 18 upper-body joints (torso + two arms):
+
+* ``legs="fixed"`` (18 actions, the papers' ``balancing_reward_fixed_legs`` net): the policy
+  moves the upper body only; the 12 leg joints are held at their initial pose ``q0`` by their
+  servos (:class:`HeldJointsExecutor`);
+* ``legs="controlled"`` (30 actions, ``balancing_reward_controlled_legs``): the leg joints are
+  actuated by the policy too, through the same safe action space (their own position, velocity,
+  acceleration and jerk limits); they are not part of the path and start at ``q0``.
+
+On top of :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv` (through its ``task_step`` hook):
+
+* **observation** (``base_sensor=True``) adds 8 values (docs/method.md §4 item 9): the pelvis position
+  relative to its start, normalised by ``0.2/sqrt(3)`` m (3); the pelvis orientation quaternion
+  (w, x, y, z) with ``w >= 0`` (4); the z-axis tilt normalised over [0, 0.125 rad] (1). All clipped
+  to [-1, 1]. Deliberate difference: the published code maps the quaternion from
+  [0, 1] to [-1, 1], which clips every negative component to -1 and so hides the direction of a
+  small tilt; the components are already in [-1, 1], so we pass them as they are.
+* **reward** adds the balance terms of docs/method.md §2.4 (each ``(1 - min(1, x/x_max))**2``):
+  pelvis displacement (0.2 m, weight 0.2), orientation ``arccos|q_w| 2/pi`` (0.5, 0.2), z-axis
+  tilt (0.125 rad, 2.0) and the mean Cartesian distance of the two wrist target points, commanded
+  pose on the moving pelvis vs. reference pose on the initial pelvis (0.4 m, 0.2).
+* **termination**: the robot *fell* when the pelvis tilt exceeds ``fall_tilt`` (0.52 rad, the
+  published code's optional z-angle termination) or the pelvis centre of mass dropped by more
+  than ``fall_drop`` (0.2 m); the episode then ends as a task failure (``task_failed`` metric).
+
+Positions of the pelvis are those of the ``base`` body's centre of mass (``xipos``, about 0.99 m
+above the floor, like PyBullet's base position); its orientation is the body frame's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mjx_pathtrack import _quiet  # noqa: F401,I001  (before brax / mujoco.mjx: silences their Warp notices)
+from mujoco import mjx
+
+from mjx_pathtrack.core import limits as L
+from mjx_pathtrack.core import reward as R
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
+from mjx_pathtrack.envs.executors import MjxExecutor
+
+Array = jax.Array
+
+ROBOT = "armar4_legs"
+#: dataset robot whose path joints are ARMAR-4's 18 upper-body joints (same names and order)
+DATASET_ROBOT = "armar4"
+LEGS = ("fixed", "controlled")
+#: fall thresholds: pelvis tilt [rad] and drop of the pelvis centre of mass [m]
+FALL_TILT = 0.52
+FALL_DROP = 0.2
+#: observation scales (docs/method.md §4 item 9): pelvis position [m], tilt [rad]
+BASE_POS_SCALE = 0.2 / np.sqrt(3.0)
+TILT_SCALE = 0.125
+#: observation blocks the pelvis sensor adds (``base_sensor=True``), in order
+BASE_BLOCKS = (("pelvis_position", 3), ("pelvis_quaternion_wxyz", 4), ("pelvis_tilt", 1))
+BASE_OBS_SIZE = sum(size for _, size in BASE_BLOCKS)
+#: the papers' ARMAR-4 balancing nets (docs/method.md §2.4): alpha 2, no R_action, balance terms
+BALANCE_WEIGHTS = R.RewardWeights(alpha=2.0, max_deviation=0.9, mean_deviation=0.9, action=0.0,
+                                  base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2)
+BALANCE_TERMS = ("base_pos", "base_orn", "tilt", "end_point")
+
+
+class HeldJointsExecutor:
+    """An :class:`~mjx_pathtrack.envs.executors.MjxExecutor` of the whole robot driven through a subset
+    of its joints: ``active`` (indices into the robot's joints) follow the setpoints, every other
+    joint is held at ``hold [n_robot]`` by its servo (setpoint position ``hold``, velocity 0).
+    ``execute`` returns the measured positions ``[S+1, len(active)]`` of the active joints."""
+
+    name = "mjx"
+
+    def __init__(self, inner: MjxExecutor, active, hold):
+        self.inner = inner
+        self.active = np.asarray(active, np.int32)
+        self.hold = jnp.asarray(hold, jnp.float32)
+        self.substeps = inner.substeps
+
+    def _full(self, q: Array, rest: Array) -> Array:
+        return rest.at[..., self.active].set(q)
+
+    def init(self, p0: Array):
+        return self.inner.init(self._full(p0, self.hold))
+
+    def execute(self, data, p, v, a0, a1, dt):
+        zero = jnp.zeros_like(self.hold)
+        data, q, sensors = self.inner.execute(data, self._full(p, self.hold), self._full(v, zero),
+                                              self._full(a0, zero), self._full(a1, zero), dt)
+        return data, q[:, self.active], sensors
+
+
+@dataclasses.dataclass(frozen=True)
+class BalanceOptions:
+    """Task settings: ``legs`` ("fixed": 18 actions, "controlled": 30); ``base_sensor``: add the
+    8 pelvis values to the observation; ``fall_tilt`` [rad], ``fall_drop`` [m]: fall thresholds."""
+
+    legs: str = "fixed"
+    base_sensor: bool = True
+    fall_tilt: float = FALL_TILT
+    fall_drop: float = FALL_DROP
+
+
+class HumanoidBalanceEnv(PathTrackingEnv):
+    """Path tracking of ARMAR-4's upper body on its own two feet (see module docstring).
+
+    ``robot``: the loaded ``armar4_legs`` :class:`~mjx_pathtrack.robots.registry.Robot`; ``paths``: stacked
+    paths over the 18 upper-body joints; ``config``: :class:`~mjx_pathtrack.envs.tracking.EnvConfig` (its
+    ``reward`` holds the balance weights, e.g. :data:`BALANCE_WEIGHTS`; ``substeps`` must equal
+    ``robot.n_substeps``); ``options``: :class:`BalanceOptions`.
+    """
+
+    #: what a task failure (``task_failed``) means here (evaluate.py: "robot fell in x % of the episodes")
+    task_failure = "robot_fell"
+
+    def __init__(self, robot, paths: S.Path, max_dis_between_knots: float, config: EnvConfig,
+                 options: BalanceOptions = BalanceOptions()):
+        if options.legs not in LEGS:
+            raise ValueError(f"legs must be one of {LEGS}, got {options.legs!r}")
+        if not robot.floating:
+            raise ValueError(f"robot {robot.name!r} has no floating base; the balance task needs {ROBOT!r}")
+        upper = np.flatnonzero(np.asarray(robot.path_mask))
+        if options.legs == "fixed":
+            active = upper
+            lim = robot.limits
+            limits = L.JointLimits(*(jnp.asarray(x)[active] for x in (lim.pos_min, lim.pos_max, lim.vel, lim.acc,
+                                                                       lim.jerk)),
+                                   names=tuple(robot.joint_names[i] for i in active))
+            executor = HeldJointsExecutor(MjxExecutor(robot), active, robot.q0)
+            path_joints = np.arange(len(active))
+        else:
+            active = np.arange(robot.n_joints)
+            limits = robot.limits
+            executor = MjxExecutor(robot)
+            path_joints = upper
+        self.robot = robot
+        self.options = options
+        self.active = active
+        self.joint_names = tuple(robot.joint_names[i] for i in active)
+        super().__init__(limits, paths, max_dis_between_knots, config, path_joints=path_joints,
+                         home=np.asarray(robot.q0)[active], executor=executor)
+        data0 = robot.mj_data()
+        self._base_body = int(robot.mj_model.body("base").id)
+        if robot.mj_model.jnt_type[0] != 0 or robot.mj_model.jnt_bodyid[0] != self._base_body:
+            raise ValueError(f"{robot.name}: the first joint must be the free joint of body 'base'")
+        self._base0 = jnp.asarray(data0.xipos[self._base_body], jnp.float32)
+        self._qpos0 = jnp.asarray(robot.qpos0, jnp.float32)
+        self._sites = jnp.asarray(robot.site_ids)
+        self._fk_data = mjx.make_data(robot.mjx_model)
+
+    # -- pelvis -----------------------------------------------------------------------------
+
+    def base_state(self, data) -> tuple[Array, Array, Array, Array]:
+        """From the executor's ``mjx.Data``: pelvis position relative to its start ``[3]`` [m],
+        quaternion ``[4]`` (w, x, y, z; w >= 0), z-axis in the world ``[3]`` and tilt ``[]`` [rad]."""
+        pos = data.xipos[self._base_body] - self._base0
+        quat = data.qpos[3:7]
+        quat = jnp.where(quat[0] < 0, -quat, quat)
+        z_axis = data.xmat[self._base_body].reshape(3, 3)[:, 2]
+        return pos, quat, z_axis, R.tilt_angle(z_axis)
+
+    def _target_points(self, qpos: Array) -> Array:
+        """World positions ``[k, 3]`` of the robot's target sites at ``qpos`` (kinematics only)."""
+        data = mjx.kinematics(self.robot.mjx_model, self._fk_data.replace(qpos=qpos))
+        return data.site_xpos[self._sites]
+
+    def _robot_q(self, q: Array) -> Array:
+        """Positions of all robot joints ``[n_robot]`` from the env's joints ``[n]`` (legs at q0 if fixed)."""
+        return jnp.asarray(self.robot.q0, jnp.float32).at[self.active].set(q)
+
+    # -- PathTrackingEnv hooks ----------------------------------------------------------------
+
+    task_name = "balance"
+
+    def extra_observation_blocks(self) -> list[tuple[str, int]]:
+        return list(BASE_BLOCKS) if self.options.base_sensor else []
+
+    def observe(self, track: TrackState) -> Array:
+        obs = super().observe(track)
+        if not self.options.base_sensor:
+            return obs
+        pos, quat, _, tilt = self.base_state(track.executor)
+        extra = jnp.concatenate([pos / BASE_POS_SCALE, quat, (-1.0 + 2.0 * tilt / TILT_SCALE)[None]])
+        return jnp.concatenate([obs, jnp.clip(extra, -1.0, 1.0)])
+
+    def task_step(self, before: TrackState, after: TrackState, sensors):
+        del before, sensors
+        data = after.executor
+        pos, quat, z_axis, tilt = self.base_state(data)
+        # end points: commanded pose on the current pelvis vs. reference pose on the initial pelvis
+        rq = self.robot.qpos_adr
+        commanded = self._target_points(data.qpos.at[rq].set(self._robot_q(after.p)))
+        path = self.reference(after)
+        q_ref = self.home.at[self.path_joints].set(S.point_at(path, after.s))
+        reference = self._target_points(self._qpos0.at[rq].set(self._robot_q(q_ref)))
+        end_error = jnp.mean(jnp.linalg.norm(commanded - reference, axis=-1))
+        terms = R.balance_terms(self.config.reward, pos, quat, z_axis, end_error)
+        fell = (tilt > self.options.fall_tilt) | (-pos[2] > self.options.fall_drop)
+        return terms, fell, {"tilt": tilt, "end_point_error": end_error}
+
+    def metric_names(self) -> tuple[str, ...]:
+        return super().metric_names() + tuple(f"reward/{k}" for k in BALANCE_TERMS) + ("tilt", "end_point_error")
+
+
+def observation_size(n_next: int, legs: str = "fixed", base_sensor: bool = True) -> int:
+    """Observation size of the task (docs/method.md §4: 226 / 234 with fixed legs, 270 with controlled
+    legs and the base sensor, for N = 8), without building the environment."""
+    if legs not in LEGS:
+        raise ValueError(f"legs must be one of {LEGS}, got {legs!r}")
+    n, m = (18, 18) if legs == "fixed" else (30, 18)
+    return 3 * n + m * (n_next + 1) + 2 + n_next + (BASE_OBS_SIZE if base_sensor else 0)
+
+
+def balance_weights(scale: float = 1.0, base: R.RewardWeights = BALANCE_WEIGHTS) -> R.RewardWeights:
+    """``base`` (default: the papers' ARMAR-4 weights) with the four balance terms set to the
+    papers' weights (0.2, 0.2, 2.0, 0.2) times ``scale`` (0: the "no balancing reward" variant)."""
+    return dataclasses.replace(base, **{k: getattr(BALANCE_WEIGHTS, k) * scale for k in BALANCE_TERMS})
+
+
+def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis: float | None = None,
+             env_config: EnvConfig | None = None) -> HumanoidBalanceEnv:
+    """The balance environment of a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task="balance"``,
+    ``robot="armar4"``: the dataset of ARMAR-4's upper-body paths; ``legs``; ``balance_reward``).
+    ``paths``/``max_dis``/``env_config`` replace the dataset split, its knot spacing and the
+    config's :class:`EnvConfig` (evaluation on user paths or whole paths)."""
+    from mjx_pathtrack.paths import datasets
+    from mjx_pathtrack.robots import registry as robots
+
+    if config.robot != DATASET_ROBOT:
+        raise ValueError(f"the balance task tracks paths of robot {DATASET_ROBOT!r} (ARMAR-4's upper body), "
+                         f"got robot {config.robot!r}")
+    if config.executor != "mjx":
+        raise ValueError(f"the balance task needs the mjx executor (floating base physics), got {config.executor!r}")
+    robot = robots.load_robot(ROBOT, dt=config.dt)
+    if max_dis is None:
+        meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
+        upper = [n for n, m in zip(robot.joint_names, robot.path_mask) if m]
+        if list(meta.get("joint_names", upper)) != upper:
+            raise ValueError(f"dataset {config.robot}/{config.dataset} joints {meta['joint_names']} differ from "
+                             f"ARMAR-4's upper body {upper}")
+        max_dis = float(meta["max_dis_between_knots"])
+    if paths is None:
+        paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
+    env_config = config.env_config() if env_config is None else env_config
+    return HumanoidBalanceEnv(robot, paths, max_dis, env_config, BalanceOptions(legs=config.legs))
+
+
+def eval_robot(config):
+    """The robot whose joints are the environment's actions (Cartesian metrics in evaluation):
+    ``armar4`` (fixed legs: the same 18 joints on a static base) or ``armar4_legs``."""
+    from mjx_pathtrack.robots import registry as robots
+
+    return robots.load_robot(DATASET_ROBOT if config.legs == "fixed" else ROBOT, dt=config.dt)

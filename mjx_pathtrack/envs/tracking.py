@@ -1,0 +1,423 @@
+"""Path-tracking environment (paper 000 §III; docs/method.md), a Brax ``Env``.
+
+One step, per environment (``jax.vmap`` over the batch; docs/architecture.md "Data flow of one step"):
+
+1. the action in [-1, 1]^n is mapped into the safe acceleration range of the current state
+   or, once the path end was reached, replaced by the fastest safe braking acceleration;
+2. the acceleration goes linearly to the new value over ``dt`` (constant jerk); the executor
+   (:mod:`~mjx_pathtrack.envs.executors`) turns these setpoints into the executed motion at
+   ``substeps`` instants: the kinematic one follows them exactly (the papers' no-feedback
+   tasks), the MJX one measures servo-controlled physics;
+3. the arc length ``l`` of the executed path-joint motion advances the position ``s`` on the
+   reference (no projection); the deviation ``d`` compares executed points with the reference
+   at equal arc length;
+4. reward ``alpha R_l + w R_d(d_max) + w R_d(d_mean) (+ R_action)``; termination on deviation,
+   robot stopped at the end (its reward multiplied by the remaining steps) or the time budget.
+
+The environment's own state is the ``pipeline_state`` (:class:`TrackState`) so that Brax's
+auto-reset restores it; use :func:`mjx_pathtrack.envs.wrappers.wrap_for_training`, which draws a
+*fresh* episode on every reset instead of replaying the first one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mjx_pathtrack import _quiet  # noqa: F401,I001  (before brax / mujoco.mjx: silences their Warp notices)
+from brax.envs.base import Env, State
+
+from mjx_pathtrack.core import limits as L
+from mjx_pathtrack.core import reward as R
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.executors import KinematicExecutor
+
+Array = jax.Array
+
+
+#: how the observation shows the next knots (:class:`EnvConfig` ``knots_frame``)
+KNOTS_FRAMES = ("absolute", "relative")
+#: when braking at the end of the path starts (:class:`EnvConfig` ``end_braking``)
+END_BRAKING = ("at_end", "predictive")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Episode, observation and termination settings (defaults: papers' iiwa random-path net).
+
+    dt [s]: decision step; n_next: knots ahead in the observation (N); substeps: setpoints per
+    step (24 = 1/240 s at dt 0.1); deviation_samples: comparison points per step;
+    duration [s]: time budget for a whole path (scaled by the episode's share of it);
+    start_range, min_fraction, max_fraction: random sub-path selection (docs/method.md §5);
+    terminate_deviation [rad] (None: off); brake_at_end / terminate_on_stop: braking at the end
+    and termination once |v|, |a| < stop_velocity / stop_acceleration; success_deviation [rad]:
+    final deviation of a successful episode; deviation_weights: per path joint (None: plain L2);
+    adjustable: each environment carries its own copy of its path so that the reference ahead
+    can be replaced during the episode (:meth:`PathTrackingEnv.replace_reference`); off for
+    training, where the state only holds the dataset index (much less memory per environment).
+    end_tolerance [rad]: the end counts as reached (braking starts) once the reference position
+    is within this arc length of the path end; 0 (the papers): only at the end itself. A
+    deterministic policy can stall just short of the end (docs/results.md "Findings of earlier recipes").
+    end_braking: when braking towards the end starts: ``"at_end"`` (the papers): once the
+    reference position reaches the end (``end_tolerance`` before it); ``"predictive"``: as soon
+    as the fastest stop from the current state would carry the robot to the end, i.e. the
+    remaining arc length is at most the length of that stop (:meth:`PathTrackingEnv.stop_length`,
+    predicted without position limits). A policy that arrives at speed then stops at the end
+    instead of overshooting it by its braking distance; braking itself is the same.
+    knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
+    ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
+    max_dis_between_knots``): same size, but the policy need not learn the subtraction (docs/results.md
+    "Findings of earlier recipes" measures the difference).
+    """
+
+    dt: float = 0.1
+    n_next: int = 8
+    substeps: int = 24
+    deviation_samples: int = 16
+    duration: float = 16.0
+    start_range: tuple[float, float] = (0.0, 0.8)
+    min_fraction: float = 0.2
+    max_fraction: float = 1.0
+    terminate_deviation: float | None = 0.25
+    brake_at_end: bool = True
+    terminate_on_stop: bool = True
+    stop_velocity: float = 0.01
+    stop_acceleration: float = 0.01
+    success_deviation: float = 0.05
+    deviation_weights: tuple[float, ...] | None = None
+    reward: R.RewardWeights = R.RewardWeights()
+    adjustable: bool = False
+    knots_frame: str = "absolute"
+    end_tolerance: float = 0.0
+    end_braking: str = "at_end"
+
+    def __post_init__(self):
+        if self.end_braking not in END_BRAKING:
+            raise ValueError(f"unknown end_braking {self.end_braking!r}; known: {', '.join(END_BRAKING)}")
+        if self.knots_frame not in KNOTS_FRAMES:
+            raise ValueError(f"unknown knots_frame {self.knots_frame!r}; known: {', '.join(KNOTS_FRAMES)}")
+        if not (np.isfinite(self.end_tolerance) and self.end_tolerance >= 0.0):
+            raise ValueError(f"end_tolerance must be a finite number >= 0 [rad], got {self.end_tolerance}")
+
+    def max_episode_steps(self) -> int:
+        """Upper bound of the steps of any episode (the whole path at full duration)."""
+        return int(round(self.duration / self.dt)) + 1
+
+
+class TrackState(NamedTuple):
+    """Per-environment state (all float32 unless noted).
+
+    p, v, a ``[n]``: commanded joint state at the decision instant; s ``[]``: arc position on the
+    reference; s_start ``[]``: where the episode started on it; path_index ``[]`` int32;
+    n_knots ``[]`` int32: knots of the episode's (truncated) path; steps ``[]`` int32 taken;
+    max_steps ``[]`` int32 time budget; braking ``[]`` bool; rng: key for the next reset;
+    path: the episode's own :class:`~mjx_pathtrack.core.spline.Path` if the config is ``adjustable``
+    (else None: the path is the dataset's ``path_index`` truncated to ``n_knots``);
+    executor: the executor's state (None for the kinematic one, ``mjx.Data`` for MJX).
+    """
+
+    p: Array
+    v: Array
+    a: Array
+    s: Array
+    s_start: Array
+    path_index: Array
+    n_knots: Array
+    steps: Array
+    max_steps: Array
+    braking: Array
+    rng: Array
+    path: S.Path | None = None
+    executor: Any = None
+
+
+class PathTrackingEnv(Env):
+    """Follow reference paths from a dataset as fast as possible within the joint limits.
+
+    ``limits``: :class:`~mjx_pathtrack.core.limits.JointLimits` of all ``n`` actuated joints;
+    ``paths``: stacked :class:`~mjx_pathtrack.core.spline.Path` batch ``[B]`` over the path joints;
+    ``max_dis_between_knots`` [rad]: the dataset's largest knot spacing (observation scale);
+    ``path_joints``: indices of the joints that form the path (default: all);
+    ``home`` ``[n]``: start position of joints outside the path (default 0);
+    ``executor``: :mod:`~mjx_pathtrack.envs.executors` object (default: kinematic with
+    ``config.substeps``), its sub-steps must match ``config.substeps``.
+    """
+
+    def __init__(self, limits: L.JointLimits, paths: S.Path, max_dis_between_knots: float,
+                 config: EnvConfig = EnvConfig(), path_joints=None, home=None, executor=None):
+        n = limits.n_joints
+        self.limits = limits
+        self.config = config
+        self.paths = paths
+        self.path_joints = np.arange(n) if path_joints is None else np.asarray(path_joints, np.int32)
+        m = len(self.path_joints)
+        if paths.knots.ndim != 3 or paths.knots.shape[-1] != m:
+            raise ValueError(f"paths must be a stacked batch [B, max_knots, {m}] over the {m} path joints, "
+                             f"got knots of shape {paths.knots.shape}")
+        if not np.isfinite(max_dis_between_knots) or max_dis_between_knots <= 0:
+            raise ValueError(f"max_dis_between_knots must be > 0, got {max_dis_between_knots}")
+        if config.deviation_weights is not None and len(config.deviation_weights) != m:
+            raise ValueError(f"deviation_weights has {len(config.deviation_weights)} values for {m} path joints")
+        self.max_dis = float(max_dis_between_knots)
+        self.home = jnp.zeros(n) if home is None else jnp.asarray(home, jnp.float32)
+        self.n_paths = int(paths.knots.shape[0])
+        self.executor = KinematicExecutor(config.substeps) if executor is None else executor
+        if self.executor.substeps != config.substeps:
+            raise ValueError(f"executor has {self.executor.substeps} sub-steps per decision step, "
+                             f"config.substeps is {config.substeps}")
+
+    # -- Brax interface ---------------------------------------------------------------------
+
+    #: task name recorded in exported policies' manifests
+    task_name = "tracking"
+
+    @property
+    def observation_size(self) -> int:
+        n, m, N = self.limits.n_joints, len(self.path_joints), self.config.n_next
+        return 3 * n + m * (N + 1) + 2 + N + sum(size for _, size in self.extra_observation_blocks())
+
+    def extra_observation_blocks(self) -> list[tuple[str, int]]:
+        """Named task-specific blocks ``[(name, size), ...]`` that :meth:`observe` appends after
+        the path-tracking observation (none here; tasks with sensors override it)."""
+        return []
+
+    @property
+    def action_size(self) -> int:
+        return self.limits.n_joints
+
+    @property
+    def backend(self) -> str:
+        return self.executor.name
+
+    def reset(self, rng: Array, index: Array | None = None) -> State:
+        """New episode; ``index`` (int ``[]``) picks the dataset path instead of a random one."""
+        track = self.initial_state(rng, index)
+        zero = jnp.zeros(())
+        metrics = {k: zero for k in self.metric_names()}
+        return State(pipeline_state=track, obs=self.observe(track), reward=zero, done=zero,
+                     metrics=metrics, info={})
+
+    def step(self, state: State, action: Array) -> State:
+        track, reward, done, metrics = self.transition(state.pipeline_state, action)
+        return state.replace(pipeline_state=track, obs=self.observe(track), reward=reward,
+                             done=done.astype(jnp.float32), metrics=metrics)
+
+    # -- episode ----------------------------------------------------------------------------
+
+    def path(self, index: Array, n_knots: Array | None = None) -> S.Path:
+        """The dataset path ``index`` (truncated to ``n_knots`` if given), copied."""
+        return self.dataset_path(index, n_knots).materialize()
+
+    def dataset_path(self, index: Array, n_knots: Array | None = None) -> S.DatasetPath:
+        """The dataset path ``index`` (truncated to ``n_knots`` if given), read in place."""
+        path = S.DatasetPath.of(self.paths, index)
+        return path if n_knots is None else path._replace(n_knots=n_knots)
+
+    def initial_state(self, rng: Array, index: Array | None = None) -> TrackState:
+        """Random path (or dataset path ``index``), random sub-path (docs/method.md §5), robot at
+        rest on its start point. The sub-path draw does not depend on ``index``."""
+        cfg = self.config
+        rng, k_path, k_sub = jax.random.split(rng, 3)
+        if index is None:
+            index = jax.random.randint(k_path, (), 0, self.n_paths)
+        index = jnp.asarray(index, jnp.int32)
+        full = self.dataset_path(index)
+        total = full.length
+        path, s0 = S.sample_sub_path(full, k_sub, cfg.start_range, cfg.min_fraction, cfg.max_fraction)
+        s0 = jnp.minimum(s0, path.length)
+        p = self.home.at[self.path_joints].set(S.point_at(path, s0))
+        p = jnp.clip(p, self.limits.pos_min, self.limits.pos_max)
+        zero = jnp.zeros_like(p)
+        duration = cfg.duration * (path.length - s0) / jnp.maximum(total, 1e-9)
+        trajectory_length = jnp.round(duration / cfg.dt).astype(jnp.int32) + 1
+        return TrackState(p=p, v=zero, a=zero, s=s0, s_start=s0, path_index=index,
+                          n_knots=path.n_knots, steps=jnp.zeros((), jnp.int32),
+                          max_steps=jnp.maximum(trajectory_length - 1, 1), braking=jnp.zeros((), bool), rng=rng,
+                          path=path.materialize() if cfg.adjustable else None, executor=self.executor.init(p))
+
+    def episode_path(self, track: TrackState) -> S.Path:
+        """The reference of the episode ``track`` is in (a copy of the dataset path)."""
+        return track.path if track.path is not None else self.path(track.path_index, track.n_knots)
+
+    def reference(self, track: TrackState) -> S.AnyPath:
+        """The reference of the episode ``track`` is in, for the :mod:`~mjx_pathtrack.core.spline`
+        functions: the dataset path read in place (:class:`~mjx_pathtrack.core.spline.DatasetPath`),
+        or the episode's own path if the config is ``adjustable``."""
+        return track.path if track.path is not None else self.dataset_path(track.path_index, track.n_knots)
+
+    def replace_reference(self, state: State, new_knots: Array, n_new: Array | None = None) -> State:
+        """Replace the reference ahead of the current position by a spline through ``new_knots
+        [m, n_path]`` (paper 000 Fig. 4; :func:`~mjx_pathtrack.core.spline.replace_ahead`): the robot
+        continues from where it is, the observation shows the new knots at once. The time budget
+        is rescaled to the new remaining length; braking stops if the path now goes on.
+        Needs ``EnvConfig(adjustable=True)``. Jittable; vmap it for a batch."""
+        track = state.pipeline_state
+        if track.path is None:
+            raise ValueError("replace_reference needs EnvConfig(adjustable=True)")
+        old = track.path
+        path = S.replace_ahead(old, track.s, new_knots, n_new)
+        steps_per_rad = track.max_steps / jnp.maximum(old.length - track.s_start, 1e-9)
+        remaining = jnp.ceil((path.length - track.s) * steps_per_rad).astype(jnp.int32)
+        track = track._replace(path=path, n_knots=path.n_knots, max_steps=track.steps + jnp.maximum(remaining, 1),
+                               braking=track.braking & self.end_reached(path, track.s))
+        return state.replace(pipeline_state=track, obs=self.observe(track))
+
+    def transition(self, track: TrackState, action: Array):
+        """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``."""
+        cfg, lim = self.config, self.limits
+        path = self.reference(track)
+        # the safe range of the current state (computed here rather than at the end of the
+        # previous step, so that a reset does not pay for it)
+        a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
+        a_policy = L.action_to_acceleration(action, a_min, a_max)
+        a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
+        # (materialised: the executor's set-points and the integration would each recompute it)
+        a_next = L.materialized(jnp.where(track.braking, a_brake, a_policy))
+        # executed positions at the sub-steps of the step, start point included: [S+1, n]
+        exec_state, q, sensors = self.executor.execute(track.executor, track.p, track.v, track.a, a_next, cfg.dt)
+        p1, v1, _ = L.integrate(track.p, track.v, track.a, a_next, cfg.dt, cfg.dt)
+        executed = q[:, self.path_joints]
+        length, d = self._progress_and_deviation(path, track.s, executed)
+        window = S.knot_window(path, track.s, cfg.n_next)
+        s1 = jnp.minimum(track.s + length, path.length)
+        d_max, d_mean = jnp.max(d), jnp.mean(d)
+        terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
+                                 d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
+        steps = track.steps + 1
+        ahead = self.stop_length(p1, v1, a_next) if cfg.end_braking == "predictive" else 0.0
+        reached_end = self.end_reached(path, s1 + ahead)
+        braking = track.braking | (reached_end & cfg.brake_at_end)
+        new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
+        task_terms, failed, task_metrics = self.task_step(track, new, sensors)
+        terms = {**terms, **task_terms}
+        reward = sum(terms.values())
+        stopped = track.braking & jnp.all(jnp.abs(v1) < cfg.stop_velocity) & jnp.all(jnp.abs(a_next) < cfg.stop_acceleration)
+        done_stop = stopped if cfg.terminate_on_stop else jnp.zeros((), bool)
+        done_dev = (d_max > cfg.terminate_deviation) if cfg.terminate_deviation is not None else jnp.zeros((), bool)
+        done_time = steps >= track.max_steps
+        done = done_stop | done_dev | done_time | failed
+        # finishing early must not lower the return: the stop reward counts for every remaining step
+        reward = jnp.where(done_stop, reward * (track.max_steps + 1 - steps).astype(jnp.float32), reward)
+        final_dev = R.weighted_deviation(S.end_knot(path), executed[-1], cfg.deviation_weights)
+        success = done & ~done_dev & ~failed & (final_dev < cfg.success_deviation)
+        metrics = {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}, "length": length, "d_max": d_max,
+                   "d_mean": d_mean, "progress": (s1 - track.s_start) / jnp.maximum(path.length - track.s_start, 1e-9),
+                   "reached_end": reached_end.astype(jnp.float32), "success": success.astype(jnp.float32),
+                   "terminated_deviation": (done_dev & ~done_stop).astype(jnp.float32),
+                   "task_failed": failed.astype(jnp.float32), **task_metrics}
+        return new, reward, done, metrics
+
+    def end_reached(self, path: S.Path, s: Array) -> Array:
+        """bool ``[]``: arc position ``s`` [rad] is at the end of ``path`` (within ``end_tolerance``)."""
+        return s >= path.length - self.config.end_tolerance
+
+    def stop_length(self, p: Array, v: Array, a: Array) -> Array:
+        """Path-joint arc length [rad] ``[]`` of the fastest stop from ``(p, v, a) [n]``: the
+        braking accelerations (:func:`~mjx_pathtrack.core.limits.braking_acceleration`, jerk and
+        acceleration limits, position limits ignored) integrated over :attr:`stop_steps`
+        decision steps, as the polyline through the decision instants."""
+        lim, dt, pj = self.limits, self.config.dt, self.path_joints
+        free = (-lim.acc, lim.acc)
+
+        def step(carry, _):
+            p, v, a = carry
+            a1 = L.braking_acceleration(lim, p, v, a, dt, safe_range=free)
+            p1, v1, _ = L.integrate(p, v, a, a1, dt, dt)
+            return (p1, v1, a1), jnp.linalg.norm(p1[pj] - p[pj])
+
+        _, lengths = jax.lax.scan(step, (p, v, a), None, length=self.stop_steps)
+        return jnp.sum(lengths)
+
+    @property
+    def stop_steps(self) -> int:
+        """Decision steps that bound the fastest stop from any state within the limits: from
+        ``|v| <= V``, ``|a| <= A`` the acceleration reaches ``-A`` within ``2 A / J`` and the
+        velocity zero within ``V / A`` more (+2 steps for the grid)."""
+        lim = self.limits
+        worst = np.max(np.asarray(lim.vel) / np.asarray(lim.acc) + 2.0 * np.asarray(lim.acc) / np.asarray(lim.jerk))
+        return int(np.ceil(worst / self.config.dt)) + 2
+
+    #: values of :meth:`critic_features`
+    CRITIC_FEATURES = ("budget_left", "path_left", "braking")
+
+    def critic_features(self, track: TrackState) -> Array:
+        """What the return depends on but the observation does not show, for a value network that
+        sees more than the policy (``TrainConfig.privileged_critic``, training only):
+        ``[budget_left, path_left, braking]`` ``[3]`` float32. ``budget_left``: decision steps
+        left in the time budget over :meth:`EnvConfig.max_episode_steps` [-] (the stop reward is
+        multiplied by them); ``path_left``: arc length from ``s`` to the path end over ``N *
+        max_dis_between_knots`` [-] (beyond the shown knots); ``braking``: 1 while braking at the end."""
+        path = self.reference(track)
+        horizon = float(self.config.max_episode_steps())
+        return jnp.stack([(track.max_steps - track.steps).astype(jnp.float32) / horizon,
+                          (path.length - track.s) / (self.config.n_next * self.max_dis),
+                          track.braking.astype(jnp.float32)])
+
+    def task_step(self, before: TrackState, after: TrackState, sensors: dict[str, Array]
+                  ) -> tuple[dict[str, Array], Array, dict[str, Array]]:
+        """Hook for tasks with sensor feedback (:mod:`mjx_pathtrack.envs.tasks`), called once per step
+        after the executor ran: ``before``/``after`` are the states around the step (``after.executor``
+        is the executor's new state, e.g. ``mjx.Data``), ``sensors`` what the executor returned.
+        Returns ``(terms, failed, metrics)``: named weighted reward terms added to the step reward
+        (before the robot-stop multiplication), a bool ``[]`` that ends the episode as a task failure
+        (not a success; metric ``task_failed``), extra scalar metrics. A subclass that returns terms
+        or metrics lists them in :meth:`metric_names`. Default: no task."""
+        del before, after, sensors
+        return {}, jnp.zeros((), bool), {}
+
+    def metric_names(self) -> tuple[str, ...]:
+        terms = ("distance", "max_deviation", "mean_deviation", "action")
+        return ("reward",) + tuple(f"reward/{k}" for k in terms) + ("length", "d_max", "d_mean", "progress", "reached_end",
+                                                      "success", "terminated_deviation", "task_failed")
+
+    def _progress_and_deviation(self, path: S.AnyPath, s0: Array, executed: Array) -> tuple[Array, Array]:
+        """Arc length ``l`` of the executed polyline ``[S+1, m]`` and deviations ``[M]`` at
+        ``M`` equally spaced arc lengths (start excluded) against the reference at ``s0 + offset``."""
+        cfg = self.config
+        seg = jnp.linalg.norm(jnp.diff(executed, axis=0), axis=-1)
+        cum = jnp.concatenate([jnp.zeros(1), jnp.cumsum(seg)])
+        length = cum[-1]
+        offsets = length * jnp.arange(1, cfg.deviation_samples + 1) / cfg.deviation_samples
+        i = jnp.clip(jnp.searchsorted(cum, offsets, side="left") - 1, 0, cfg.substeps - 1)
+        w = jnp.clip((offsets - cum[i]) / jnp.maximum(seg[i], 1e-12), 0.0, 1.0)
+        points = executed[i] + w[:, None] * (executed[i + 1] - executed[i])
+        return length, S.deviation(path, s0, offsets, points, cfg.deviation_weights)
+
+    # -- observation ------------------------------------------------------------------------
+
+    def observe(self, track: TrackState) -> Array:
+        """Observation ``[obs_size]`` in [-1, 1] (docs/method.md §4 items 1-7)."""
+        cfg, lim = self.config, self.limits
+        path = self.reference(track)
+        window = S.knot_window(path, track.s, cfg.n_next)
+        knots_lo, knots_hi = lim.pos_min[self.path_joints], lim.pos_max[self.path_joints]
+        scale = cfg.n_next * self.max_dis
+        if cfg.knots_frame == "relative":
+            knots = (window.knots - track.p[self.path_joints]) / scale
+        else:
+            knots = normalize_position(window.knots, knots_lo, knots_hi)
+        obs = jnp.concatenate([
+            normalize_position(track.p, lim.pos_min, lim.pos_max),
+            track.v / lim.vel,
+            track.a / lim.acc,
+            knots.reshape(-1),
+            (-1.0 + 2.0 * window.offset / self.max_dis)[None],
+            (-1.0 + 2.0 * window.state_length / scale)[None],
+            -1.0 + 2.0 * window.knot_distances / scale,
+        ])
+        return jnp.clip(obs, -1.0, 1.0)
+
+
+def normalize_position(p: Array, lo: Array, hi: Array) -> Array:
+    """Positions ``[..., n]`` mapped to [-1, 1] over ``[lo, hi]``; continuous joints (infinite
+    limits) are wrapped: ``-1 + 2 ((p + pi) / 2 pi mod 1)``."""
+    finite = jnp.isfinite(lo) & jnp.isfinite(hi)
+    span = jnp.where(finite, hi - lo, 1.0)
+    bounded = -1.0 + 2.0 * (p - jnp.where(finite, lo, 0.0)) / span
+    if not isinstance(finite, jax.core.Tracer) and bool(np.all(finite)):
+        return bounded  # known limits, none continuous: the wrapped branch would be dead work
+    wrapped = -1.0 + 2.0 * jnp.mod((p + jnp.pi) / (2.0 * jnp.pi), 1.0)
+    return jnp.where(finite, bounded, wrapped)

@@ -1,0 +1,309 @@
+"""Evaluate a trained policy (run directory or export) on test paths: the paper 000 §IV report.
+
+``python evaluate.py RUN_DIR_OR_EXPORT`` is the front end. Steps: :func:`load_policy_source`
+(run dir: ``config.json`` + ``params.pkl`` through the Brax networks of
+:func:`~mjx_pathtrack.rl.training.ppo_networks`; export dir: :func:`~mjx_pathtrack.deploy.export.load_policy`),
+:func:`build_env` (dataset split or user path file, every path once by default, sub-paths from a
+fixed seed), :func:`run_evaluation` (batched rollout, metrics, TOPP-RA baseline, computation time),
+:func:`write_outputs` (``metrics.json``, ``episodes.csv``, plots; all written atomically).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import pickle
+from pathlib import Path as FsPath
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_pathtrack.evaluation import baseline
+from mjx_pathtrack.paths import datasets
+from mjx_pathtrack.robots import registry as robots
+from mjx_pathtrack.evaluation import rollout as E
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.tracking import PathTrackingEnv
+from mjx_pathtrack.fileio import atomic_write_bytes
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import json_safe, ppo_networks
+
+#: paper 000 Table VI, policy / TOPP-RA duration, iiwa random paths
+PAPER_RATIO = {"iiwa": 1.27}
+
+
+class EvaluationError(ValueError):
+    """A missing or unusable run, checkpoint or path file; the message says which."""
+
+
+@dataclasses.dataclass
+class PolicySource:
+    """A loaded policy: ``policy(obs [B, obs_size], key) -> action [B, n]`` (pure JAX), the
+    training config (a default one rebuilt from the manifest for an export), the training
+    dataset's ``max_dis_between_knots`` (observation scale) and a description."""
+
+    policy: E.Policy
+    config: TrainConfig
+    max_dis: float | None
+    kind: str
+    path: FsPath
+
+
+def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
+    """Load a run directory (``config.json`` + ``params.pkl``) or an export directory
+    (``manifest.json`` + ``policy.jaxexport``); :class:`EvaluationError` if unusable.
+    ``deterministic=False``: the policy samples its actions from the trained Gaussian, with the
+    key of each step, as during training (run directories only: an export holds the mean)."""
+    from mjx_pathtrack.deploy import export
+
+    root = FsPath(path)
+    if not root.is_dir():
+        raise EvaluationError(f"no run or export directory at {root}")
+    if (root / export.MANIFEST_FILE).is_file():
+        if not deterministic:
+            raise EvaluationError(f"{root} is an export, which holds only the deterministic policy; "
+                                  f"sampled actions need the run directory (config.json + params.pkl)")
+        try:
+            exported = export.load_policy(root)
+        except export.ExportError as e:
+            raise EvaluationError(str(e)) from e
+        man = exported.manifest
+        config = TrainConfig(robot=man["robot"], dt=float(man["dt"]), n_next=int(man["n_next"]),
+                             knots_frame=man.get("knots_frame", "absolute"),
+                             end_braking=man.get("end_braking", "at_end"))
+        call = exported._exported.call  # pure JAX: jit/vmap friendly
+        return PolicySource(lambda obs, key: call(obs), config, float(man["max_dis_between_knots"]), "export", root)
+    config_file, params_file = root / "config.json", root / "params.pkl"
+    if not config_file.is_file():
+        raise EvaluationError(f"{root} is neither a run directory (config.json missing) nor an export "
+                              f"(manifest.json missing)")
+    try:
+        config = TrainConfig.from_json(config_file.read_text())
+    except (ValueError, TypeError) as e:
+        raise EvaluationError(f"corrupt run config {config_file}: {e}") from e
+    if not params_file.is_file():
+        raise EvaluationError(f"{root}: params.pkl missing (training not finished? use the export/ directory "
+                              f"or finish the run with train.py --resume)")
+    try:
+        params = pickle.loads(params_file.read_bytes())
+    except Exception as e:  # unpickling errors come in many types
+        raise EvaluationError(f"corrupt checkpoint {params_file}: {type(e).__name__}: {e}") from e
+    return PolicySource(_brax_policy(config, params, params_file, deterministic), config, None, "run", root)
+
+
+def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True) -> E.Policy:
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    if config.task == "balance":
+        from mjx_pathtrack.envs.tasks import humanoid_balance
+
+        n = len(humanoid_balance.eval_robot(config).joint_names)
+        obs_size = humanoid_balance.observation_size(config.n_next, config.legs)
+    else:
+        robot = robots.load_robot(config.robot, dt=config.dt)
+        n = robot.n_joints
+        m = int(np.sum(robot.path_mask))
+        obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
+    if config.task == "ball_on_plate":
+        from mjx_pathtrack.envs.tasks.ball_on_plate import observation_size
+
+        obs_size = observation_size(n, config.n_next, sensor=config.ball_reward > 0)
+    nets = ppo_networks(config)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
+    policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params, deterministic)
+    try:
+        out = jax.eval_shape(policy, jax.ShapeDtypeStruct((1, obs_size), jnp.float32), jax.random.PRNGKey(0))
+    except Exception as e:
+        raise EvaluationError(f"checkpoint {params_file} does not fit the networks of config.json "
+                              f"(policy layers {config.policy_layers}, observation size {obs_size}): "
+                              f"{type(e).__name__}: {e}") from e
+    if out.shape != (1, n):
+        raise EvaluationError(f"checkpoint {params_file}: policy output {out.shape}, expected (1, {n})")
+    return policy
+
+
+def user_paths(file: str, robot: str) -> S.Path:
+    """Stacked paths of a user path file (``.npz``/``.json``/``.csv``, the datasets import format),
+    validated against the robot's path joints (:class:`~mjx_pathtrack.paths.datasets.DatasetError`)."""
+    limits, names = datasets.robot_limits(robot)
+    knots = [datasets.validate_path(k, limits, names, name=f"{FsPath(file).name}: {name}")
+             for name, k in datasets.read_user_paths(file)]
+    return S.stack_fits(S.fit_spline(k) for k in knots)
+
+
+def build_env(source: PolicySource, paths_file: str | None = None, split: str = "test",
+              full_paths: bool = False) -> tuple[PathTrackingEnv, robots.Robot, str]:
+    """The evaluation environment: the training config's (termination, weights, executor), the
+    training dataset's observation scale, on ``split`` of the training dataset or on the paths of
+    ``paths_file``; ``full_paths`` evaluates whole paths instead of random sub-paths."""
+    cfg = source.config
+    robot = robots.load_robot(cfg.robot, dt=cfg.dt)
+    if cfg.task == "ball_on_plate":  # whole paths, ball always simulated; episodes end when it falls
+        from mjx_pathtrack.envs.tasks.ball_on_plate import from_train_config
+
+        if paths_file is not None:
+            raise EvaluationError("--paths is not supported for the ball_on_plate task (level-plate paths only)")
+        return from_train_config(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
+    max_dis = source.max_dis
+    if max_dis is None:
+        max_dis = float(datasets.read_config(cfg.robot, cfg.dataset, cfg.dataset_root)["max_dis_between_knots"])
+    if paths_file is not None:
+        paths, label = user_paths(paths_file, cfg.robot), FsPath(paths_file).name
+    else:
+        paths, label = datasets.load_paths(cfg.robot, cfg.dataset, split, root=cfg.dataset_root), \
+            f"{cfg.robot}/{cfg.dataset}/{split}"
+    env_cfg = cfg.env_config()
+    if full_paths:
+        env_cfg = dataclasses.replace(env_cfg, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0)
+    if cfg.task == "balance":
+        from mjx_pathtrack.envs.tasks import humanoid_balance
+
+        env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg)
+        return env, humanoid_balance.eval_robot(cfg), label
+    executor = None
+    if cfg.executor == "mjx":
+        from mjx_pathtrack.envs.executors import MjxExecutor
+        executor = MjxExecutor(robot)
+    env = PathTrackingEnv(robot.limits, paths, max_dis, env_cfg, path_joints=np.flatnonzero(robot.path_mask),
+                          home=robot.q0, executor=executor)
+    return env, robot, label
+
+
+def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes: int | None = None, seed: int = 0,
+                   batch: int = 256, timing_decisions: int = 200, topp: bool = True, topp3: bool = False,
+                   topp3_cache=None, workers: int = 2) -> tuple[dict, dict, E.Rollout]:
+    """Evaluate: ``episodes`` (default: one per path) on paths ``i mod n_paths`` in batches of
+    ``batch`` (the last padded, so one compile), sub-paths from ``PRNGKey(seed)``. ``topp``: the
+    TOPP-RA baseline; ``topp3``: also the jerk-limited optimum (TOPP3, ~1 s per path on
+    ``workers`` processes, reused from the JSON file ``topp3_cache``). Returns ``(summary,
+    per-episode table, rollout of the first batch)``."""
+    n = env.n_paths if episodes is None else int(episodes)
+    if n < 1:
+        raise EvaluationError(f"--episodes must be >= 1, got {n}")
+    indices = np.arange(n) % env.n_paths
+    size = min(batch, n)
+    key = jax.random.PRNGKey(seed)
+    tables, first = [], None
+    for i, start in enumerate(range(0, n, size)):
+        chunk = indices[start:start + size]
+        padded = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk))])
+        ro = E.rollout(env, policy, jax.random.fold_in(key, i), padded)
+        table = {k: v[:len(chunk)] for k, v in E.episode_table(env, ro, robot).items()}
+        if topp:
+            pj = np.asarray(env.path_joints)
+            lim = env.limits
+            paths = jax.tree.map(lambda x: x[:len(chunk)], ro.paths)
+            table["toppra_duration_s"] = baseline.baseline_durations(paths, ro.s_start[:len(chunk)],
+                                                                     np.asarray(lim.vel)[pj], np.asarray(lim.acc)[pj])
+            table["ratio_to_toppra"] = baseline.duration_ratio(table["stop_time_s"], table["toppra_duration_s"])
+        if topp3:
+            pj = np.asarray(env.path_joints)
+            lim = env.limits
+            paths = jax.tree.map(lambda x: x[:len(chunk)], ro.paths)
+            table["topp3_duration_s"] = baseline.jerk_limited_durations(
+                paths, ro.s_start[:len(chunk)], np.asarray(lim.vel)[pj], np.asarray(lim.acc)[pj],
+                np.asarray(lim.jerk)[pj], cache=topp3_cache, workers=workers)
+            table["ratio_to_topp3"] = baseline.duration_ratio(table["stop_time_s"], table["topp3_duration_s"])
+        tables.append(table)
+        first = ro if first is None else first
+    table = {k: np.concatenate([t[k] for t in tables]) for k in tables[0]}
+    summary = E.aggregate(table)
+    if getattr(env, "task_failure", None):  # envs that end episodes on a task failure (``task_failed``)
+        summary["task_failures"] = {f"{env.task_failure}_rate": summary["task_failed_rate"]}
+    if topp:
+        ratio = table["ratio_to_toppra"]
+        summary["toppra_duration_s_mean"] = float(np.nanmean(table["toppra_duration_s"]))
+        summary["ratio_to_toppra_mean"] = float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan")
+        summary["ratio_to_toppra_max"] = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
+    if topp3:
+        ratio = table["ratio_to_topp3"]
+        summary["topp3_duration_s_mean"] = float(np.nanmean(table["topp3_duration_s"]))
+        summary["topp3_failures"] = int(np.sum(~np.isfinite(table["topp3_duration_s"])))
+        summary["ratio_to_topp3_mean"] = float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan")
+        summary["ratio_to_topp3_max"] = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
+        if topp:
+            summary["topp3_over_toppra_mean"] = float(np.nanmean(table["topp3_duration_s"] / table["toppra_duration_s"]))
+    if timing_decisions > 0:
+        times = E.decision_times(env, policy, first, timing_decisions, seed)
+        summary["computation_time"] = {"decisions": int(len(times)), "dt_s": float(env.config.dt),
+                                       "mean_s": float(times.mean()), "max_s": float(times.max()),
+                                       "mean_over_dt": float(times.mean() / env.config.dt),
+                                       "max_over_dt": float(times.max() / env.config.dt)}
+    return summary, table, first
+
+
+def format_report(summary: dict, title: str, robot_name: str) -> str:
+    """The Table I / VI / IX style text report of :func:`run_evaluation`'s summary."""
+    g = lambda k: summary.get(k, float("nan"))  # noqa: E731
+    lines = [title, "=" * len(title),
+             f"episodes {summary['episodes']}   end reached {100 * g('end_reached_rate'):.1f} %   "
+             f"success {100 * g('success_rate'):.1f} %   progress {100 * g('progress_mean'):.1f} %",
+             "terminations: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in summary["termination"].items()),
+             *[f"task: {k[:-5].replace('_', ' ')} in {100 * v:.1f} % of the episodes"
+               for k, v in summary.get("task_failures", {}).items()],
+             "",
+             "Table I   duration until stopped [s]     mean {:7.3f}   max {:7.3f}".format(g("stop_time_s_mean"),
+                                                                                          g("stop_time_s_max")),
+             "          time end reached [s]          mean {:7.3f}   max {:7.3f}".format(g("end_time_s_mean"),
+                                                                                          g("end_time_s_max")),
+             "          {:<28s}{:>9s} {:>9s} {:>9s} {:>9s}".format("deviation", "mean", "mean max", "max", "final")]
+    for label, key in (("joint [rad]", "joint_dev"), ("Cartesian position [cm]", "cart_pos_dev_cm"),
+                       ("orientation [deg]", "cart_rot_dev_deg")):
+        if f"{key}_mean" in summary:
+            lines.append("          {:<28s}{:9.4f} {:9.4f} {:9.4f} {:9.4f}".format(
+                label, g(f"{key}_mean"), g(f"{key}_max_mean"), g(f"{key}_max"), g(f"{key}_final")))
+    if "ratio_to_toppra_mean" in summary:
+        paper = PAPER_RATIO.get(robot_name)
+        lines += ["", "Table VI  TOPP-RA duration [s] mean {:7.3f}   ratio policy/TOPP-RA mean {:6.3f}  max {:6.3f}{}".format(
+            g("toppra_duration_s_mean"), g("ratio_to_toppra_mean"), g("ratio_to_toppra_max"),
+            f"   (paper: {paper})" if paper else "")]
+    if "ratio_to_topp3_mean" in summary:
+        lines += ["          TOPP3 (jerk-limited optimum) [s] mean {:7.3f}   ratio policy/TOPP3 mean {:6.3f}  max {:6.3f}"
+                  "   TOPP3/TOPP-RA mean {:6.3f}   ({} failed)".format(
+                      g("topp3_duration_s_mean"), g("ratio_to_topp3_mean"), g("ratio_to_topp3_max"),
+                      g("topp3_over_toppra_mean"), summary.get("topp3_failures", 0))]
+    if "computation_time" in summary:
+        c = summary["computation_time"]
+        lines += ["", "Table IX  computation time / dt (single env, jitted, {} decisions): mean {:.5f}  max {:.5f}  "
+                  "({:.3f} / {:.3f} ms)".format(c["decisions"], c["mean_over_dt"], c["max_over_dt"],
+                                               1e3 * c["mean_s"], 1e3 * c["max_s"])]
+    a = summary["limit_audit"]
+    lines += ["", "Limit audit (max |x| / limit over all steps and in-step extrema): pos {pos:.6f}  vel {vel:.6f}  "
+              "acc {acc:.6f}  jerk {jerk:.6f}  -> {verdict}".format(**a, verdict="OK (<= 1)" if a["ok"] else "VIOLATED")]
+    return "\n".join(lines)
+
+
+def table_csv(table: dict[str, np.ndarray]) -> bytes:
+    """The per-episode table as CSV bytes (one row per episode)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    keys = list(table)
+    writer.writerow(["episode"] + keys)
+    for i in range(len(table[keys[0]])):
+        writer.writerow([i] + [_cell(table[k][i]) for k in keys])
+    return buf.getvalue().encode()
+
+
+def _cell(x) -> str:
+    if isinstance(x, (bool, np.bool_)):
+        return str(int(x))
+    if isinstance(x, (float, np.floating)):
+        return "" if not np.isfinite(x) else f"{float(x):.6g}"
+    return str(x)
+
+
+def write_outputs(out_dir: str, summary: dict, table: dict, meta: dict[str, Any], env: PathTrackingEnv,
+                  ro: E.Rollout, robot, episode: int = 0) -> list[FsPath]:
+    """Write ``metrics.json``, ``episodes.csv`` and the plots of ``episode`` of ``ro`` (atomic)."""
+    from mjx_pathtrack.evaluation import plots as eval_plots
+
+    out = FsPath(out_dir)
+    files = [out / "metrics.json", out / "episodes.csv"]
+    atomic_write_bytes(files[0], (json.dumps(json_safe({**meta, **summary}), indent=2) + "\n").encode())
+    atomic_write_bytes(files[1], table_csv(table))
+    files += eval_plots.plot_episode(out, env, ro, robot, episode)
+    return files

@@ -1,0 +1,66 @@
+"""Command line of the path datasets: ``python -m mjx_pathtrack.paths {generate,stats,import}``.
+
+    python -m mjx_pathtrack.paths generate --robot iiwa --kind random --num-train 200 --num-test 200
+    python -m mjx_pathtrack.paths stats [--robot iiwa] [--kind random] [--root splines]
+    python -m mjx_pathtrack.paths import FILE --robot iiwa --kind my_paths [--split test]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+from mjx_pathtrack.paths.datasets import (DEFAULT_ROOT, SPLITS, DatasetError, import_paths, known_robots, load_split,
+                                          split_stats, stats)
+from mjx_pathtrack.paths.generate import generate_dataset
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mjx_pathtrack.paths",
+                                     description="Reference-path datasets: generate, statistics and import.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_stats = sub.add_parser("stats", help="knots per path, path length, knot spacing per split")
+    p_stats.add_argument("--robot")
+    p_stats.add_argument("--kind")
+    p_stats.add_argument("--root", default=None, help=f"dataset root (default {DEFAULT_ROOT})")
+    p_imp = sub.add_parser("import", help="validate user paths (.npz/.json/.csv) and store them")
+    p_imp.add_argument("file")
+    p_imp.add_argument("--robot", required=True, choices=known_robots())
+    p_imp.add_argument("--kind", required=True, help="dataset name, e.g. my_paths")
+    p_imp.add_argument("--split", default="test", choices=SPLITS)
+    p_imp.add_argument("--root", default=None)
+    p_imp.add_argument("--overwrite", action="store_true")
+    p_gen = sub.add_parser("generate", help="generate a dataset (kinds: see generate.KINDS, e.g. random, target_point)")
+    p_gen.add_argument("--robot", default="iiwa", choices=known_robots())
+    p_gen.add_argument("--kind", default="random")
+    p_gen.add_argument("--num-train", type=int, default=200)
+    p_gen.add_argument("--num-test", type=int, default=200)
+    p_gen.add_argument("--seed", type=int, default=0)
+    p_gen.add_argument("--root", default=None)
+    p_gen.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "generate":
+            directory = generate_dataset(args.robot, args.kind, args.num_train, args.num_test, args.seed,
+                                         args.root, args.overwrite)
+            for name, st in stats(args.robot, args.kind, args.root).items():
+                print(st.line(name))
+            print(f"written to {directory}")
+        elif args.command == "stats":
+            table = stats(args.robot, args.kind, args.root)
+            if not table:
+                print(f"no datasets under {args.root or DEFAULT_ROOT}")
+            for name, st in table.items():
+                print(st.line(name))
+        else:
+            directory = import_paths(args.file, args.robot, args.kind, args.split, args.root,
+                                     overwrite=args.overwrite)
+            print(f"imported into {directory}")
+            print(split_stats(load_split(args.robot, args.kind, args.split, args.root))
+                  .line(f"{args.robot}/{args.kind}/{args.split}"))
+    except DatasetError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+

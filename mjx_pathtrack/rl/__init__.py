@@ -1,0 +1,9 @@
+"""Reinforcement learning: the training configuration, the PPO learner, the training loop.
+
+- :mod:`~mjx_pathtrack.rl.config`: ``TrainConfig``, presets and recipes, validation, ``make_env``;
+- :mod:`~mjx_pathtrack.rl.training`: ``train`` (run directory, progress, evaluation, export);
+- :mod:`~mjx_pathtrack.rl.checkpoint`: exact checkpoints and run directories (resume);
+- :mod:`~mjx_pathtrack.rl.ppo`: Brax PPO as a pure function of the learner state;
+- :mod:`~mjx_pathtrack.rl.batched_ppo`: several PPO learners trained as one batched program (sweeps);
+- :mod:`~mjx_pathtrack.rl.velocity_max_train`: training and the optimum of the velocity task (paper 001).
+"""

@@ -1,0 +1,97 @@
+"""The run directory and exact checkpoints: what a run writes, when a directory may take a run
+(``--resume`` / ``--overwrite``), and the whole learner state saved after each evaluation
+interval (the newest ``KEEP_CHECKPOINTS`` kept) so that a resumed run ends exactly as an
+uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path as FsPath
+
+from mjx_pathtrack.fileio import atomic_write_bytes
+
+
+class RunDirError(ValueError):
+    """The run directory cannot be used as asked (holds another run, is a file, not writable)."""
+
+
+#: files and folders of a run directory that this package writes
+RUN_FILES = ("config.json", "progress.csv", "checkpoints", "params.pkl", "report.json", "export", "tensorboard",
+             "data", "eval")
+
+
+def prepare_run_dir(run_dir: FsPath, resume: bool, overwrite: bool) -> bool:
+    """Check that ``run_dir`` can take this run (nothing is written). Returns whether the
+    directory holds a previous run. Raises :class:`RunDirError`: a file, not writable, or a run
+    that neither ``resume`` nor ``overwrite`` was asked for."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise RunDirError(f"--out {run_dir}: is a file, not a directory")
+    parent = next((p for p in [run_dir, *run_dir.parents] if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise RunDirError(f"--out {run_dir}: cannot create or write it ({parent} is not a writable directory)")
+    held = [name for name in RUN_FILES if (run_dir / name).exists()]
+    if held and not (resume or overwrite):
+        raise RunDirError(f"--out {run_dir}: holds a training run ({', '.join(held)}); use --resume to continue it, "
+                          f"--overwrite to replace it, or choose another --out")
+    if resume and overwrite:
+        raise RunDirError("--resume and --overwrite exclude each other")
+    return bool(held)
+
+
+def clear_run_dir(run_dir: FsPath) -> None:
+    """Remove what this package wrote into ``run_dir`` (``--overwrite``)."""
+    import shutil
+
+    for name in RUN_FILES:
+        target = run_dir / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+
+
+CHECKPOINT_FORMAT = 1
+
+
+CHECKPOINT_SUFFIX = ".ckpt"
+
+
+#: checkpoints kept per run (older ones are deleted)
+KEEP_CHECKPOINTS = 3
+
+
+def checkpoint_path(checkpoints: FsPath, step: int) -> FsPath:
+    return checkpoints / f"{step:012d}{CHECKPOINT_SUFFIX}"
+
+
+def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
+    """The newest checkpoint file and the env steps it stands for, or None. Files are written
+    atomically, so any file found is complete."""
+    if not checkpoints.is_dir():
+        return None
+    found = [(int(f.name[:-len(CHECKPOINT_SUFFIX)]), f) for f in checkpoints.iterdir()
+             if f.name.endswith(CHECKPOINT_SUFFIX) and f.name[:-len(CHECKPOINT_SUFFIX)].isdigit()]
+    if not found:
+        return None
+    step, path = max(found)
+    return path, step
+
+
+def save_checkpoint(checkpoints: FsPath, step: int, state: dict) -> FsPath:
+    """Write ``state`` (host arrays) as the checkpoint of ``step``; keep the newest few."""
+    path = checkpoint_path(checkpoints, step)
+    atomic_write_bytes(path, pickle.dumps({"format": CHECKPOINT_FORMAT, "step": step, **state}))
+    old = sorted(f for f in checkpoints.iterdir() if f.name.endswith(CHECKPOINT_SUFFIX))
+    for f in old[:-KEEP_CHECKPOINTS]:
+        f.unlink()
+    return path
+
+
+def load_checkpoint(path: FsPath) -> dict:
+    data = pickle.loads(path.read_bytes())
+    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+        raise RunDirError(f"{path}: not a checkpoint of this package's format {CHECKPOINT_FORMAT} "
+                          f"(a run from before exact resume? train it again with --overwrite)")
+    return data

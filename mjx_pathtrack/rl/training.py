@@ -1,0 +1,387 @@
+"""PPO training of the path-tracking policy: environment wiring, the training loop with its
+evaluations, progress and logs, resume, and the run's results (parameters, export, report).
+``train.py`` at the repository root is the command-line front end; the configuration lives in
+:mod:`mjx_pathtrack.rl.config`, run directories and checkpoints in :mod:`mjx_pathtrack.rl.checkpoint`.
+
+The algorithm is :mod:`mjx_pathtrack.rl.ppo` (Brax's PPO pieces as a pure function of the whole
+learner state): every evaluation interval ends with a checkpoint of that state, so a run killed
+at any point and resumed with ``resume=True`` ends with the same parameters as an uninterrupted
+one (same machine, same device count).
+
+Multi-device: the environments are split over the local JAX devices and the iterations run
+under ``jax.pmap`` with averaged gradients (data parallel, as Brax does); multi-host runs call
+``jax.distributed.initialize()`` first (``--distributed`` in train.py; not tested here).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pickle
+import time
+from pathlib import Path as FsPath
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_pathtrack import _jax_compat
+from mjx_pathtrack.paths import datasets
+from mjx_pathtrack.rl import ppo
+from mjx_pathtrack.robots import registry as robots
+from mjx_pathtrack.envs.tracking import PathTrackingEnv
+from mjx_pathtrack.envs.executors import MjxExecutor
+from mjx_pathtrack.deploy.export import export_policy
+from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes
+from mjx_pathtrack.paths.train_data import ensure_train_paths
+from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
+from mjx_pathtrack.rl.config import EXECUTORS, TASKS, TrainConfig, validate_config
+from mjx_pathtrack.rl.checkpoint import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, load_checkpoint, prepare_run_dir, save_checkpoint
+
+_jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
+
+
+def make_env(config: TrainConfig, split: str = "train", root=None) -> PathTrackingEnv:
+    """The environment over one dataset split (``train`` or ``test``) of a registry robot
+    (dataset under ``root``, default ``config.dataset_root``)."""
+    if config.task not in TASKS:
+        raise ValueError(f"unknown task {config.task!r}; known: {', '.join(TASKS)}")
+    if config.task == "balance":
+        from mjx_pathtrack.envs.tasks import humanoid_balance
+
+        return humanoid_balance.make_env(config, split)
+    if config.task == "ball_on_plate":
+        from mjx_pathtrack.envs.tasks.ball_on_plate import from_train_config
+
+        return from_train_config(config, split, evaluation=split == "test")
+    root = config.dataset_root if root is None else root
+    robot = robots.load_robot(config.robot, dt=config.dt)
+    meta = datasets.read_config(config.robot, config.dataset, root)
+    paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
+    path_joints = np.flatnonzero(np.asarray(robot.path_mask))
+    if config.executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {config.executor!r}; known: {', '.join(EXECUTORS)}")
+    executor = MjxExecutor(robot) if config.executor == "mjx" else None
+    return PathTrackingEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), config.env_config(),
+                           path_joints=path_joints, home=robot.q0, executor=executor)
+
+
+class Progress:
+    """Prints env-steps/s, ETA and the latest evaluation; appends rows to ``progress.csv`` and
+    writes the same scalars as TensorBoard events to ``run_dir/tensorboard``.
+
+    Each row has ``wall_s`` (seconds of training so far: since this object was made, plus
+    ``wall_offset`` for a resumed run), ``env_steps_per_s`` over the interval since the previous
+    row (the first interval includes compilation) and the metrics passed in (``training/*``,
+    this package's deterministic ``eval/*`` and sampled ``eval_sampled/*`` summaries)."""
+
+    def __init__(self, run_dir: FsPath, total_steps: int, start_step: int = 0, echo: bool = True,
+                 wall_offset: float = 0.0):
+        from tensorboardX import SummaryWriter
+
+        self.file = run_dir / "progress.csv"
+        self.board = SummaryWriter(str(run_dir / "tensorboard"))
+        self.echo = echo
+        self.total = total_steps
+        self.start = time.monotonic() - wall_offset
+        self.last: tuple[int, float] | None = None
+        self.start_step = start_step
+
+    def wall(self) -> float:
+        """Seconds of training so far (including those before a resume)."""
+        return time.monotonic() - self.start
+
+    def __call__(self, step: int, metrics: dict[str, Any]) -> None:
+        step += self.start_step
+        now = time.monotonic()
+        rate = float("nan")
+        if self.last is not None and step > self.last[0]:
+            rate = (step - self.last[0]) / max(now - self.last[1], 1e-9)
+        self.last = (step, now)
+        eta = max(self.total - step, 0) / rate if rate == rate and rate > 0 else float("nan")
+        row = {"step": step, "wall_s": now - self.start, "env_steps_per_s": rate, "eta_s": eta,
+               **{k: float(np.asarray(v)) for k, v in metrics.items() if np.ndim(v) == 0}}
+        append_csv_row(self.file, row)
+        for key, value in row.items():
+            if key != "step" and np.isfinite(value):
+                self.board.add_scalar(key, value, step)
+        self.board.flush()
+        if self.echo:
+            ret = row.get("eval/return", row.get("eval/episode_reward", float("nan")))
+            line = f"step {step:>10,}  {rate:10,.0f} env-steps/s  ETA {eta / 60:6.1f} min  eval return {ret:8.2f}"
+            for prefix, label in (("eval", "deterministic"), ("eval_sampled", "sampled")):
+                if f"{prefix}/end_reached" in row:
+                    line += (f"  {label}: end {100 * row[f'{prefix}/end_reached']:5.1f} %"
+                             f" dev {row[f'{prefix}/mean_deviation']:.3f}"
+                             + (f" x{row[f'{prefix}/ratio_to_toppra']:.2f}" if f"{prefix}/ratio_to_toppra" in row else ""))
+            print(line, flush=True)
+
+
+def truncate_progress(file: FsPath, after_step: int) -> None:
+    """Drop the rows of ``progress.csv`` logged after ``after_step`` (a resumed run logs them again)."""
+    import csv
+    import io
+
+    if not file.is_file():
+        return
+    with open(file, newline="") as f:
+        reader = csv.DictReader(f)
+        fields, rows = reader.fieldnames or [], [r for r in reader if float(r["step"]) <= after_step]
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=fields, restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(file, text.getvalue().encode())
+
+
+#: Brax PPO network factory of a config (kept here under its old name)
+ppo_networks = ppo.networks
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced non-finite parameters or losses; the last good checkpoint is kept."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Training
+# ---------------------------------------------------------------------------------------------
+
+
+class _Program(NamedTuple):
+    core: Any
+    init: Any  # (seed) -> Learner (with a leading device axis when pmapped)
+    epoch: Any  # (Learner, start, end) -> (Learner, summary); start, end: fractions of the budget
+    devices: int
+    iterations: int  # training iterations per evaluation interval
+    epochs: int
+
+
+def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
+    """The compiled training program: one evaluation interval per call, over the local devices."""
+    c = config
+    devices = jax.local_device_count()
+    processes = jax.process_count()
+    if c.num_envs % (devices * processes):
+        devices = 1 if c.num_envs % processes == 0 else devices
+    axis = ppo.DEVICE_AXIS if devices > 1 else None
+    core = ppo.build(c, env, axis_name=axis)
+    weights = ppo.reward_weights(c)
+    epochs = max(c.num_evals - 1, 1)
+    iterations = max(int(np.ceil(c.num_timesteps / (epochs * core.steps_per_iteration))), 1)
+    envs_per_device = c.num_envs // (devices * processes)
+
+    def step(learner, fraction):
+        return ppo.scheduled_iteration(core, weights, learner, fraction)
+
+    if devices == 1:
+        def init(seed):
+            return jax.jit(lambda: core.init(seed, weights, envs_per_device, jax.process_index()))()
+
+        return _Program(core, init, ppo.make_epoch(jax.jit(step, donate_argnums=(0,)), iterations), 1, iterations,
+                        epochs)
+
+    first = jax.process_index() * devices
+
+    def init(seed):
+        return jax.pmap(lambda d: core.init(seed, weights, envs_per_device, d), axis_name=axis)(
+            first + jnp.arange(devices))
+
+    pmapped = jax.pmap(step, axis_name=axis, in_axes=(0, None), donate_argnums=(0,))
+    return _Program(core, init, ppo.make_epoch(pmapped, iterations), devices, iterations, epochs)
+
+
+def _eval_baseline(env: PathTrackingEnv, key, episodes: int) -> np.ndarray:
+    """TOPP-RA durations of the evaluation episodes (the same every evaluation: a fixed key), so
+    that progress.csv shows the policy/TOPP-RA ratio."""
+    from mjx_pathtrack.evaluation import baseline
+    from mjx_pathtrack.evaluation.rollout import episode_references
+
+    paths, s_start = episode_references(env, key, episodes)
+    pj = np.asarray(env.path_joints)
+    return baseline.baseline_durations(paths, s_start, np.asarray(env.limits.vel)[pj], np.asarray(env.limits.acc)[pj])
+
+
+def _host(tree):
+    return jax.tree.map(np.asarray, jax.device_get(tree))
+
+
+def _brax_params(learner, devices: int):
+    """``(normalizer, policy, value)`` host arrays of a learner (device 0's copy)."""
+    params = (learner.normalizer_params, learner.params.policy, learner.params.value)
+    params = _host(params)
+    return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
+
+
+def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True,
+          overwrite: bool = False):
+    """Train; returns ``(make_inference_fn, params, report)`` where ``report`` holds the
+    evaluation summaries before and after training on the test split (deterministic policy:
+    ``before``/``after``; sampled: ``before_sampled``/``after_sampled``). The run directory gets
+    ``config.json``, ``progress.csv``, ``checkpoints/`` (the whole learner state after every
+    evaluation interval), ``params.pkl``, ``report.json`` and the jitted policy export
+    ``export/`` (:mod:`mjx_pathtrack.deploy.export`).
+
+    Every option is validated and the run directory checked before anything is written: a
+    directory that holds a run is only continued with ``resume`` (the saved config must be
+    equal) or replaced with ``overwrite``. ``resume`` continues exactly: the final parameters
+    equal those of an uninterrupted run. Non-finite parameters or losses stop the run with
+    :class:`TrainingDiverged`; the last good checkpoint stays."""
+    run_dir = FsPath(run_dir)
+    validate_config(config)
+    held = prepare_run_dir(run_dir, resume, overwrite)
+    config_file = run_dir / "config.json"
+    if resume and config_file.exists():
+        saved = TrainConfig.from_json(config_file.read_text())
+        if saved != config:
+            changed = [f.name for f in dataclasses.fields(TrainConfig) if getattr(saved, f.name) != getattr(config, f.name)]
+            raise ValueError(f"--resume: config differs from the saved one in {config_file} ({', '.join(changed)})")
+    latest = latest_checkpoint(run_dir / "checkpoints") if resume else None
+    checkpoint = load_checkpoint(latest[0]) if latest else None
+    created = not run_dir.exists()
+    try:
+        if overwrite and held:
+            clear_run_dir(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(config_file, (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
+        return _train(config, run_dir, checkpoint, verbose)
+    except BaseException:
+        if created and latest_checkpoint(run_dir / "checkpoints") is None:
+            import shutil
+
+            shutil.rmtree(run_dir, ignore_errors=True)  # nothing trained yet: leave nothing behind
+        raise
+
+
+def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbose: bool):
+    root = ensure_train_paths(config.robot, config.dataset, config.num_train_paths, config.dataset_root,
+                              run_dir / "data", log=print if verbose else None)
+    env, test_env = make_env(config, "train", root), make_env(config, "test", root)
+    program = _program(config, env)
+    core = program.core
+    steps_per_epoch = program.iterations * core.steps_per_iteration
+    total = program.epochs * steps_per_epoch
+    evaluator = make_evaluator(test_env, core.make_policy, config.eval_episodes, deterministic=None)
+    eval_key = jax.random.PRNGKey(config.seed + 1)
+    toppra = _eval_baseline(test_env, eval_key, config.eval_episodes)
+
+    def evaluation(learner) -> dict[str, float]:
+        params = _brax_params(learner, program.devices)
+        out = {}
+        for sampled, prefix in ((False, "eval"), (True, "eval_sampled")):
+            for k, v in summarize(evaluator(params, eval_key, sampled), toppra).items():
+                out[f"{prefix}/{k}"] = v
+        return out
+
+    checkpoints = run_dir / "checkpoints"
+    if checkpoint is None:
+        learner, start_step, wall, evals = program.init(config.seed), 0, 0.0, {}
+        truncate_progress(run_dir / "progress.csv", -1)
+    else:
+        if int(checkpoint["devices"]) != program.devices:
+            raise RunDirError(f"{checkpoints}: written by a run on {checkpoint['devices']} devices, this one has "
+                              f"{program.devices}; resume on the same number of devices")
+        learner = jax.tree.map(jnp.asarray, checkpoint["learner"])
+        start_step, wall, evals = int(checkpoint["step"]), float(checkpoint["wall_s"]), checkpoint["evaluations"]
+        truncate_progress(run_dir / "progress.csv", int(checkpoint["step"]))
+        if verbose:
+            print(f"resuming from {checkpoints.name}/{checkpoint_path(checkpoints, checkpoint['step']).name} "
+                  f"({checkpoint['step']:,} of {total:,} steps done, {wall / 60:.1f} min)", flush=True)
+    progress = Progress(run_dir, total, 0, echo=verbose, wall_offset=wall)
+    if checkpoint is not None:  # the first interval's rate then includes the compilation, as in a new run
+        progress.last = (int(checkpoint["step"]), time.monotonic())
+    if checkpoint is None:
+        evals["before"] = evaluation(learner)
+        if verbose:
+            print("evaluation before training:", _fmt(_unprefix(evals["before"], "eval")), flush=True)
+        progress(0, evals["before"])
+    latest = evals.get("latest", evals["before"])
+    # intervals of steps_per_epoch until the budget is used (a resumed run whose config.json was
+    # edited to a larger num_timesteps goes on with intervals of the new size)
+    step = start_step
+    while step < total:
+        learner, summary = program.epoch(learner, np.float32(step / total), np.float32((step + steps_per_epoch) / total))
+        summary = _host(summary)
+        if program.devices > 1:
+            summary = jax.tree.map(lambda x: x[0], summary)
+        step += steps_per_epoch
+        finite = bool(ppo.all_finite((learner.params, learner.normalizer_params))) and \
+            all(np.isfinite(v) for v in summary.values())
+        if not finite:
+            last = latest_checkpoint(checkpoints)
+            raise TrainingDiverged(
+                f"training diverged between steps {step - steps_per_epoch:,} and {step:,}: non-finite parameters or "
+                f"losses (try a lower --learning-rate); the last good checkpoint is "
+                f"{last[0] if last else 'none (diverged in the first interval)'}")
+        latest = evaluation(learner)
+        metrics = {**{f"training/{k}": v for k, v in summary.items()}, **latest}
+        progress(step, metrics)
+        _fault_injection(step)
+        evals["latest"] = latest
+        save_checkpoint(checkpoints, step, {"wall_s": progress.wall(), "devices": program.devices,
+                                            "learner": _host(learner), "evaluations": evals})
+    params = _brax_params(learner, program.devices)
+    report = {"before": _unprefix(evals["before"], "eval"), "after": _unprefix(latest, "eval"),
+              "before_sampled": _unprefix(evals["before"], "eval_sampled"),
+              "after_sampled": _unprefix(latest, "eval_sampled")}
+    if verbose:
+        print("evaluation after training:  ", _fmt(report["after"]), flush=True)
+        print("  sampled actions:          ", _fmt(report["after_sampled"]), flush=True)
+    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.dt).joint_names
+    write_results(run_dir, core.make_policy, params, test_env, config.robot, joint_names, report)
+    return core.make_policy, params, report
+
+
+#: testing aid: a process whose environment sets this to N kills itself with SIGKILL once it has
+#: logged the progress of step >= N and before that step's checkpoint is written (the worst
+#: moment for a resume: the log is ahead of the last checkpoint)
+KILL_VAR = "MJX_PATHTRACK_KILL_AT_STEP"
+
+
+def _fault_injection(step: int) -> None:
+    at = os.environ.get(KILL_VAR)
+    if at is not None and step >= int(at):
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def write_results(run_dir: FsPath, make_policy, params, env, robot: str, joint_names, report: dict) -> None:
+    """``params.pkl``, ``export/`` and ``report.json`` of a finished run, written side by side
+    first and then moved into place (a kill leaves the previous set or the new one, each file
+    whole; the export directory is swapped as a whole)."""
+    import shutil
+
+    staging = run_dir / ".results.tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    atomic_write_bytes(staging / "params.pkl", pickle.dumps(params))
+    export_policy(staging / "export", make_policy, params, env, robot, joint_names)
+    atomic_write_bytes(staging / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
+    old_export = run_dir / ".export.old"
+    shutil.rmtree(old_export, ignore_errors=True)
+    if (run_dir / "export").exists():
+        os.replace(run_dir / "export", old_export)
+    os.replace(staging / "export", run_dir / "export")
+    os.replace(staging / "params.pkl", run_dir / "params.pkl")
+    os.replace(staging / "report.json", run_dir / "report.json")
+    shutil.rmtree(old_export, ignore_errors=True)
+    staging.rmdir()
+
+
+def _unprefix(metrics: dict[str, float], prefix: str) -> dict[str, float]:
+    return {k[len(prefix) + 1:]: v for k, v in metrics.items() if k.startswith(prefix + "/")}
+
+
+def json_safe(value):
+    """``value`` with NaN/inf floats replaced by None (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def _fmt(summary: dict[str, float]) -> str:
+    return "  ".join(f"{k}={v:.3f}" for k, v in summary.items())

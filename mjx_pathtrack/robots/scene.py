@@ -1,0 +1,145 @@
+"""What a robot's MuJoCo model gets beyond its URDF: target sites, floor contacts under the soles,
+solver settings, position servos and their tuning, and the height above the floor.
+
+Helpers of :func:`mjx_pathtrack.robots.registry.load_robot`; MuJoCo/NumPy, run once per model
+(not in the step). Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+
+def _add_target_sites(spec: mujoco.MjSpec, links: tuple[str, ...], far_points: dict) -> None:
+    """Sites ``target_<link>``: at the link origin (iiwa TCP link) or, for a link with a fitted
+    mesh (ARMAR hands), at the far end of its fitted primitive (fingertip approximation)."""
+    for link in links:
+        body = spec.body(link)
+        if body is None:
+            raise ValueError(f"target link {link!r} not in the model")
+        pos = far_points.get(link, np.zeros(3))
+        body.add_site(name=f"target_{link}", pos=list(pos), size=[0.01, 0, 0], group=4)
+
+
+#: links whose (fused) geoms form a foot; the foot's sole box is fitted to them
+FOOT_LINKS = ("leg_ank2_r0", "leg_ank2_r1")
+
+
+SOLE_THICKNESS = 0.01  # m
+
+
+def _add_floor_contacts(spec: mujoco.MjSpec) -> None:
+    """A floor plane at z = 0 and, per foot, a flat sole box fitted to the bounds (in the ankle
+    frame) of the foot's fitted primitives (ankle, heel, toes): the only geoms touching the floor.
+    The separate heel/toe primitives of the armar meshes give point contacts that let the robot
+    rock; one sole per foot gives the flat support polygon of the real feet."""
+    probe = spec.copy().compile()
+    data = mujoco.MjData(probe)
+    mujoco.mj_kinematics(probe, data)  # qpos0: all joints at 0, feet flat
+    for link in FOOT_LINKS:
+        body = probe.body(link).id
+        corners = [_geom_corners_local(probe, g) for g in range(probe.ngeom) if probe.geom_bodyid[g] == body]
+        if not corners:
+            raise ValueError(f"foot link {link!r} has no collision geoms")
+        rot, origin = data.xmat[body].reshape(3, 3), data.xpos[body]
+        world = np.concatenate(corners) @ rot.T + origin  # world-aligned bounds of the foot
+        lo, hi = world.min(axis=0), world.max(axis=0)
+        half = [(hi[0] - lo[0]) / 2, (hi[1] - lo[1]) / 2, SOLE_THICKNESS / 2]
+        center = np.array([(hi[0] + lo[0]) / 2, (hi[1] + lo[1]) / 2, lo[2] + SOLE_THICKNESS / 2])
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, rot.T.copy().ravel())
+        spec.body(link).add_geom(name=f"sole_{link}", type=mujoco.mjtGeom.mjGEOM_BOX, size=half,
+                                 pos=rot.T @ (center - origin), quat=quat, contype=1, conaffinity=0, condim=3,
+                                 group=2, friction=[1.0, 0.005, 0.0001])
+    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
+                            contype=0, conaffinity=1, condim=3, friction=[1.0, 0.005, 0.0001])
+
+
+def _geom_corners_local(model: mujoco.MjModel, g: int) -> np.ndarray:
+    """``[8, 3]`` corners of a box/capsule/sphere geom's bounding box, in its body frame [m]."""
+    size = model.geom_size[g]
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+        half = size
+    elif model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        half = np.array([size[0], size[0], size[1] + size[0]])
+    else:
+        half = np.full(3, size[0])
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, model.geom_quat[g])
+    return model.geom_pos[g] + (signs * half) @ mat.reshape(3, 3).T
+
+
+def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool) -> None:
+    """Batched-MJX-friendly solver settings: no constraints at all when the scene has no contacts
+    (``has_contacts`` false: no ball, no floating base); otherwise few Newton iterations
+    (measured: the vmapped solver dominates the step cost)."""
+    if not has_contacts:
+        spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    else:
+        spec.option.iterations = 4
+        spec.option.ls_iterations = 8
+    # joint-limit constraints are off per joint already; equality constraints do not exist
+    spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+
+
+def _add_servos(spec: mujoco.MjSpec, joint_names: list[str]) -> None:
+    """Position actuators ``pos_<joint>`` then velocity actuators ``vel_<joint>`` (gains set later)."""
+    for prefix in ("pos", "vel"):
+        for joint in joint_names:
+            act = spec.add_actuator(name=f"{prefix}_{joint}", target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            if prefix == "pos":
+                act.set_to_position(kp=1.0)
+            else:
+                act.set_to_velocity(kv=1.0)
+
+
+def _tune_servos(model: mujoco.MjModel, qpos0: np.ndarray, qpos_adr: np.ndarray, dof_adr: np.ndarray,
+                 lower: np.ndarray, upper: np.ndarray, omega: float, zeta: float, samples: int = 64) -> None:
+    """Set per-joint gains from the largest joint-space inertia diagonal ``M_ii`` (armature
+    included) over ``qpos0`` and ``samples`` random joint configurations within the limits:
+    ``kp = M w^2`` (position actuators), ``kv = 2 zeta M w`` (velocity actuators). Where the
+    actual inertia is smaller the implicitly integrated damping keeps the loop stable."""
+    rng = np.random.default_rng(0)
+    lo = np.where(np.isfinite(lower), lower, -np.pi)
+    hi = np.where(np.isfinite(upper), upper, np.pi)
+    data = mujoco.MjData(model)
+    full = np.zeros((model.nv, model.nv))
+    inertia = np.zeros(len(dof_adr))
+    for k in range(samples + 1):
+        data.qpos[:] = qpos0
+        if k:
+            data.qpos[qpos_adr] = rng.uniform(lo, hi)
+        mujoco.mj_forward(model, data)
+        mujoco.mj_fullM(model, data, full)
+        inertia = np.maximum(inertia, np.diag(full)[dof_adr])
+    n = len(dof_adr)
+    kp, kv = inertia * omega**2, 2.0 * zeta * inertia * omega
+    model.actuator_gainprm[:n, 0] = kp
+    model.actuator_biasprm[:n, 1] = -kp
+    model.actuator_gainprm[n:2 * n, 0] = kv
+    model.actuator_biasprm[n:2 * n, 2] = -kv
+
+
+def _height_above_floor(model: mujoco.MjModel, qpos: np.ndarray) -> float:
+    """Vertical shift [m] that puts the lowest floor-colliding geom point on the floor (z = 0)."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    lowest = np.inf
+    for g in range(model.ngeom):
+        if model.geom_contype[g] and model.geom_type[g] != mujoco.mjtGeom.mjGEOM_PLANE:
+            lowest = min(lowest, _geom_lowest_z(model, data, g))
+    if not np.isfinite(lowest):
+        raise ValueError(f"{model.names}: no foot geoms collide with the floor")
+    return float(-lowest)
+
+
+def _geom_lowest_z(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
+    size, pos, mat = model.geom_size[g], data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3)
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+        return float(pos[2] - np.abs(mat[2]) @ size)
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        return float(pos[2] - abs(mat[2, 2]) * size[1] - size[0])
+    return float(pos[2] - size[0])

@@ -1,0 +1,109 @@
+"""Exported policy: round trip equals the in-process policy; clear errors for bad exports."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mjx_pathtrack  # noqa: F401
+import jax
+import jax.numpy as jnp
+from brax.training.acme import running_statistics, specs
+from brax.training.agents.ppo import networks as ppo_networks
+
+from mjx_pathtrack.robots import iiwa
+from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
+from mjx_pathtrack.deploy.export import ExportError, export_policy, load_policy
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import ppo_networks as ppo_networks_factory
+from path_fixtures import random_walk_paths
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    env = PathTrackingEnv(iiwa.joint_limits(0.1), random_walk_paths(n_paths=2), 0.5, EnvConfig())
+    # the network family training uses, with a mean head initialised large enough that some
+    # actions fall outside [-1, 1] (the export clips them like the environment does)
+    factory = ppo_networks_factory(TrainConfig(policy_layers=(32, 16), value_layers=(8,), mean_init_scale=3.0))
+    nets = factory(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
+    make_inference_fn = ppo_networks.make_inference_fn(nets)
+    key = jax.random.PRNGKey(0)
+    normalizer = running_statistics.init_state(specs.Array((env.observation_size,), jnp.dtype("float32")))
+    # non-trivial observation statistics, so that the export must carry the normalisation
+    normalizer = normalizer.replace(mean=jax.random.normal(key, normalizer.mean.shape) * 0.3,
+                                    std=jax.random.uniform(key, normalizer.std.shape, minval=0.2, maxval=2.0))
+    params = (normalizer, nets.policy_network.init(key))
+    out = export_policy(tmp_path_factory.mktemp("export") / "policy", make_inference_fn, params, env, "iiwa",
+                        iiwa.JOINT_NAMES)
+    return out, make_inference_fn(params, deterministic=True), env
+
+
+def test_round_trip_matches_in_process_policy(exported):
+    out, inference, env = exported
+    policy = load_policy(out)
+    obs = np.random.default_rng(0).uniform(-1, 1, (33, env.observation_size)).astype(np.float32)
+    raw = np.asarray(inference(jnp.asarray(obs), jax.random.PRNGKey(5))[0])
+    assert np.abs(raw).max() > 1.0  # the clipping below is exercised
+    expected = np.clip(raw, -1.0, 1.0)
+    np.testing.assert_allclose(policy(obs), expected, atol=1e-6)
+    np.testing.assert_allclose(policy(obs[0]), expected[0], atol=1e-6)  # single observation
+    manifest = policy.manifest
+    assert manifest["robot"] == "iiwa" and manifest["task"] == "tracking"
+    assert manifest["joint_names"] == list(iiwa.JOINT_NAMES)
+    assert manifest["observation_size"] == 94 and manifest["action_size"] == 7
+    assert sum(block["size"] for block in manifest["observation_layout"]) == 94
+
+
+def test_load_needs_neither_brax_nor_flax(exported):
+    out, _, env = exported
+    code = (f"import sys; sys.modules['brax'] = None; sys.modules['flax'] = None\n"
+            f"import numpy as np\nfrom mjx_pathtrack.deploy.export import load_policy\n"
+            f"p = load_policy({str(out)!r})\nprint(p(np.zeros({env.observation_size}, np.float32)).shape)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip().endswith("(7,)")
+
+
+def test_bad_exports_and_inputs_give_clear_errors(exported, tmp_path):
+    out, _, _ = exported
+    policy = load_policy(out)
+    with pytest.raises(ExportError, match="shape"):
+        policy(np.zeros((2, 93), np.float32))
+    with pytest.raises(ExportError, match="NaN"):
+        policy(np.full(94, np.nan, np.float32))
+    with pytest.raises(ExportError, match="missing"):
+        load_policy(tmp_path / "nothing")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "manifest.json").write_text((out / "manifest.json").read_text())
+    (broken / "policy.jaxexport").write_bytes(b"not a flatbuffer")
+    with pytest.raises(ExportError, match="corrupt"):
+        load_policy(broken)
+    manifest = json.loads((out / "manifest.json").read_text())
+    (broken / "manifest.json").write_text(json.dumps({**manifest, "format_version": 99}))
+    with pytest.raises(ExportError, match="version"):
+        load_policy(broken)
+
+
+@pytest.mark.parametrize("content,message", [
+    ([], "not a manifest .*list"),
+    ("policy", "not a manifest .*str"),
+    ({"format_version": 1}, "key 'robot' is missing"),
+    ("drop:observation_size", "key 'observation_size' is missing, must be an integer"),
+    ("set:dt=fast", "key 'dt' is 'fast', must be a number"),
+])
+def test_manifest_that_is_json_but_not_a_manifest_is_an_export_error(exported, tmp_path, content, message):
+    out, _, _ = exported
+    manifest = json.loads((out / "manifest.json").read_text())
+    if content == "drop:observation_size":
+        content = {k: v for k, v in manifest.items() if k != "observation_size"}
+    elif content == "set:dt=fast":
+        content = {**manifest, "dt": "fast"}
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "manifest.json").write_text(json.dumps(content))
+    (bad / "policy.jaxexport").write_bytes((out / "policy.jaxexport").read_bytes())
+    with pytest.raises(ExportError, match=message):
+        load_policy(bad)

@@ -1,0 +1,91 @@
+"""Ball-on-plate task (MJX): a still robot keeps the ball for the whole episode, tilting the plate
+drops it and ends the episode; observation sizes of docs/method.md §4; the train.py preset.
+
+One jitted rollout of two environments (batch 2) covers the physics tests."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjx_pathtrack.deploy.export import observation_layout
+
+from mjx_pathtrack.envs.tasks import ball_on_plate as BP
+
+
+@pytest.fixture(scope="module")
+def env():
+    # deviation termination off: the tilting policy leaves the path on purpose
+    return BP.make_env("test", BP.env_config(terminate_deviation=None))
+
+
+@pytest.fixture(scope="module")
+def rollout(env):
+    steps = env.config.max_episode_steps()
+    actions = np.zeros((steps, 2, 7), np.float32)
+    actions[:, 1, 5] = 1.0  # joint 6 (axis y) accelerates as fast as allowed: the plate tilts
+
+    @jax.jit
+    def run(keys, indices, actions):
+        state = jax.vmap(env.reset)(keys, indices)
+
+        def body(s, a):
+            n = jax.vmap(env.step)(s, a)
+            return n, (n.done, n.metrics["ball_fell"], n.pipeline_state.executor.ball, n.reward)
+
+        return state, jax.lax.scan(body, state, actions)[1]
+
+    state, out = run(jax.random.split(jax.random.PRNGKey(0), 2), jnp.array([0, 1]), jnp.asarray(actions))
+    return jax.tree.map(np.asarray, state), tuple(np.asarray(x) for x in out)
+
+
+def test_still_robot_keeps_the_ball_for_the_whole_episode(env, rollout):
+    state, (done, fell, ball, reward) = rollout
+    assert env.config.max_episode_steps() == 61  # 6 s at 0.1 s
+    assert not fell[:, 0].any()
+    assert np.flatnonzero(done[:, 0])[0] == int(state.pipeline_state.max_steps[0]) - 1 == 59  # time budget
+    # servo sag under gravity leaves the plate ~1e-4 rad off level: the ball creeps by < 3 cm in 6 s
+    start = state.pipeline_state.executor.ball[0, :2]
+    assert np.linalg.norm(ball[:, 0, :2] - start, axis=-1).max() < 0.03
+    assert np.all(np.isfinite(reward[:, 0]))
+
+
+def test_tilting_the_plate_drops_the_ball_and_ends_the_episode(rollout):
+    state, (done, fell, ball, _) = rollout
+    first_fell = np.flatnonzero(fell[:, 1])
+    assert first_fell.size and first_fell[0] < 30
+    assert np.flatnonzero(done[:, 1])[0] == first_fell[0]  # terminated in the step the ball left
+    rel = np.abs(ball[first_fell[0], 1, :2]) / np.asarray(BP.R.BALL_HALF_RANGE)
+    assert rel.max() >= 1.0 or ball[first_fell[0], 1, 2] < 0.0
+    # the random ball starts at rest on the plate, inside the papers' start range
+    start = state.pipeline_state.executor.ball
+    assert np.all(np.abs(start[:, :2]) <= np.asarray([0.0797, 0.0458]) + 1e-6)
+
+
+def test_observation_sizes(env, rollout):
+    state, _ = rollout
+    assert env.observation_size == BP.observation_size() == 72 and state.obs.shape == (2, 72)
+    assert np.all(np.abs(state.obs) <= 1.0)
+    blind = BP.BallOnPlateEnv(env.limits, env.paths, env.max_dis, env.config, env.executor,
+                              BP.BallConfig(reward=0.0, sensor=False), home=env.home)
+    assert blind.observation_size == BP.observation_size(sensor=False) == 68
+    assert jax.eval_shape(blind.reset, jax.random.PRNGKey(0)).obs.shape == (68,)
+    # the exported manifest names every block, sensors last
+    for e, size in ((env, 72), (blind, 68)):
+        layout = observation_layout(7, 7, e.config.n_next, e.extra_observation_blocks())
+        assert sum(b["size"] for b in layout) == size and layout[-1]["start"] + layout[-1]["size"] == size
+    assert [b for b, _ in env.extra_observation_blocks()][-1] == "ball_xy" and env.task_name == "ball_on_plate"
+
+
+def test_train_preset():
+    import train
+
+    _, config = train.parse_args(["--task", "ball_on_plate", "--no-ball-reward", "--num-envs", "8"])
+    assert (config.task, config.robot, config.dataset, config.executor) == ("ball_on_plate", "iiwa", "ball_balancing",
+                                                                            "mjx")
+    assert (config.n_next, config.alpha, config.action_reward, config.duration) == (4, 4.0, 0.0, 6.0)
+    assert config.ball_reward == 0.0 and config.num_envs == 8
+    _, config = train.parse_args(["--task", "ball_on_plate"])
+    assert config.ball_reward == 1.0

@@ -1,0 +1,129 @@
+"""ARMAR-4 balance task: standing still keeps it upright, a push makes it fall and ends the
+episode, observation sizes of docs/method.md §4. One jitted rollout (MJX with contacts compiles
+slowly) serves the physics tests."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjx_pathtrack.deploy.export import observation_layout
+
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.tracking import EnvConfig
+from mjx_pathtrack.robots.registry import load_robot
+from mjx_pathtrack.envs.tasks import humanoid_balance as H
+from mjx_pathtrack.rl.config import TrainConfig
+
+STEPS = 12  # decision steps of the rollout (1.2 s)
+PUSH = 2.5  # roll rate [rad/s] given to the pelvis of the pushed robot
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(H.ROBOT)
+
+
+def small_paths(robot, n_paths=2, n_knots=5, seed=0):
+    """Short upper-body paths around the initial pose (inside the limits)."""
+    upper = np.flatnonzero(robot.path_mask)
+    lo, hi = np.asarray(robot.limits.pos_min)[upper], np.asarray(robot.limits.pos_max)[upper]
+    start = np.clip(np.asarray(robot.q0)[upper], lo + 0.1, hi - 0.1)  # inside: zero action holds still
+    rng = np.random.default_rng(seed)
+    fits = [S.fit_spline(np.clip(start + np.cumsum(rng.uniform(-0.05, 0.05, (n_knots, len(upper))), 0), lo, hi))
+            for _ in range(n_paths)]
+    return S.stack_fits(fits)
+
+
+def make(robot, legs="fixed", base_sensor=True, duration=STEPS * 0.1):
+    cfg = EnvConfig(duration=duration, start_range=(0.0, 0.0), min_fraction=1.0, reward=H.BALANCE_WEIGHTS)
+    return H.HumanoidBalanceEnv(robot, small_paths(robot), 0.2, cfg, H.BalanceOptions(legs=legs, base_sensor=base_sensor))
+
+
+@pytest.fixture(scope="module")
+def rollout(robot):
+    """Two fixed-leg robots holding still (zero action: zero acceleration from rest) for one
+    episode; the second gets a sideways push (pelvis roll rate) at the start."""
+    env = make(robot)
+
+    @jax.jit
+    def run(keys, roll_rate):
+        state = jax.vmap(env.reset)(keys)
+        data = state.pipeline_state.executor
+        data = data.replace(qvel=data.qvel.at[:, 3].set(roll_rate))
+        state = state.replace(pipeline_state=state.pipeline_state._replace(executor=data))
+        action = jnp.zeros((keys.shape[0], env.action_size))
+
+        def body(state, _):
+            nxt = jax.vmap(env.step)(state, action)
+            return nxt, (nxt.done, nxt.metrics["task_failed"], nxt.metrics["tilt"], nxt.reward, nxt.obs,
+                         nxt.metrics["reward/tilt"])
+
+        return state.obs, jax.lax.scan(body, state, None, length=STEPS)[1]
+
+    obs0, out = run(jax.random.split(jax.random.PRNGKey(0), 2), jnp.array([0.0, PUSH]))
+    return env, np.asarray(obs0), [np.asarray(x) for x in out]
+
+
+def test_holding_still_stays_upright_for_the_episode(rollout):
+    env, obs0, (done, failed, tilt, reward, obs, tilt_reward) = rollout
+    steps = int(np.argmax(done[:, 0])) + 1
+    assert done[:, 0].any() and steps >= STEPS - 1  # the episode ran out its time budget ...
+    assert failed[:steps, 0].max() == 0  # ... without falling
+    assert tilt[:steps, 0].max() < 0.01, tilt[:, 0]
+    assert np.all(np.isfinite(reward[:steps, 0]))
+    assert tilt_reward[:steps, 0].min() > 0.8 * H.BALANCE_WEIGHTS.tilt  # the tilt term sees an upright robot
+    # pelvis observation: at the start exactly, then nearly, at rest and upright
+    base = obs0[0, -H.BASE_OBS_SIZE:]
+    np.testing.assert_allclose(base[:3], 0.0, atol=1e-5)
+    np.testing.assert_allclose(base[3:7], [1, 0, 0, 0], atol=1e-5)
+    assert base[7] == pytest.approx(-1.0, abs=1e-3)
+    assert np.abs(obs[steps - 1, 0, -H.BASE_OBS_SIZE:][4:7]).max() < 0.01
+
+
+def test_push_makes_it_fall_and_ends_the_episode(rollout):
+    env, _, (done, failed, tilt, reward, obs, tilt_reward) = rollout
+    assert done[:, 1].any()
+    step = int(np.argmax(done[:, 1]))
+    assert step < STEPS - 2  # well before the time budget
+    assert failed[step, 1] == 1 and tilt[step, 1] > H.FALL_TILT
+    assert failed[:step, 1].max() == 0 and tilt[0, 1] < H.FALL_TILT  # it fell during the rollout
+    assert tilt_reward[step, 1] == 0.0  # beyond 0.125 rad the tilt term is 0
+
+
+def test_observation_sizes_match_reference(robot, rollout):
+    env, obs0, (_, _, _, _, obs, _) = rollout
+    assert (env.observation_size, env.action_size) == (234, 18)
+    assert obs0.shape == (2, 234) and obs.shape[-1] == 234 and np.abs(obs).max() <= 1.0
+    key = jax.random.PRNGKey(0)
+    for legs, sensor, size, actions in (("fixed", False, 226, 18), ("controlled", True, 270, 30)):
+        other = make(robot, legs, sensor)
+        assert (other.observation_size, other.action_size) == (size, actions)
+        assert jax.eval_shape(other.reset, key).obs.shape == (size,)
+        assert H.observation_size(8, legs, sensor) == size
+        layout = observation_layout(other.limits.n_joints, len(other.path_joints), 8,
+                                    other.extra_observation_blocks())
+        assert sum(b["size"] for b in layout) == size and other.task_name == "balance"
+
+
+def test_bad_options_are_rejected(robot):
+    with pytest.raises(ValueError, match="legs must be one of"):
+        make(robot, legs="hopping")
+    with pytest.raises(ValueError, match="no floating base"):
+        H.HumanoidBalanceEnv(load_robot("armar4"), small_paths(robot), 0.2, EnvConfig())
+
+
+def test_balance_weights_scale_only_the_balance_terms():
+    none = H.balance_weights(0.0)
+    assert (none.base_pos, none.base_orn, none.tilt, none.end_point) == (0, 0, 0, 0)
+    assert dataclasses.replace(none, base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2) == H.BALANCE_WEIGHTS
+    # the training config's weights (alpha etc. from its flags) get the papers' balance terms
+    cfg = TrainConfig(task="balance", robot="armar4", executor="mjx", alpha=2.0, action_reward=0.0)
+    w = cfg.env_config().reward
+    assert (w.alpha, w.action, w.base_pos, w.base_orn, w.tilt, w.end_point) == (2.0, 0.0, 0.2, 0.2, 2.0, 0.2)
+    half = dataclasses.replace(cfg, balance_reward=0.5).env_config().reward
+    assert (half.base_pos, half.tilt) == (0.1, 1.0)
+    assert dataclasses.replace(cfg, balance_reward=0.0).env_config().reward.tilt == 0.0
+    assert TrainConfig().env_config().reward.tilt == 0.0  # plain path tracking: no balance terms

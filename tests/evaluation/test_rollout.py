@@ -1,0 +1,257 @@
+"""Evaluation metrics on hand-made episodes with known answers, the limit audit, the computation
+time, and evaluate.py on a tiny run directory (parameters built without training) and bad inputs."""
+
+import dataclasses
+import importlib.util
+import json
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mjx_pathtrack  # noqa: F401
+import jax
+import jax.numpy as jnp
+
+from mjx_pathtrack.evaluation import baseline
+from mjx_pathtrack.evaluation import report as R
+from mjx_pathtrack.evaluation import rollout as E
+from mjx_pathtrack.robots import registry as robots
+from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.paths.datasets import DatasetError
+from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import make_env, ppo_networks
+
+REPO = Path(__file__).resolve().parents[2]
+DT = 0.1
+SHOULDER = 0.5  # joint 2 held here, so that the tool point is off the joint-1 axis
+
+
+def _line(length):
+    knots = np.zeros((6, 7))
+    knots[:, 0] = np.linspace(0.0, length, 6)
+    knots[:, 1] = SHOULDER
+    return S.make_path(knots)
+
+
+def _joint0_policy(obs, key):
+    """Joint 1 (index 0) as fast as allowed, the others in mid-range (held at rest)."""
+    return jnp.zeros((obs.shape[0], 7)).at[:, 0].set(1.0)
+
+
+@pytest.fixture(scope="module")
+def iiwa():
+    return robots.load_robot("iiwa", dt=DT)
+
+
+@pytest.fixture(scope="module")
+def lines(iiwa):
+    """Whole-path episodes along joint 1 on a 1 rad line (reaches the end, brakes, stops) and a
+    4 rad line (the 1.5 s budget ends first), with the analytic joint-1 policy."""
+    cfg = EnvConfig(start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0, terminate_deviation=None,
+                    duration=1.5)
+    env = PathTrackingEnv(iiwa.limits, S.stack_paths([_line(1.0), _line(4.0)]), 0.9, cfg, home=iiwa.q0)
+    ro = E.rollout(env, _joint0_policy, jax.random.PRNGKey(0), [0, 1])
+    return env, ro, E.episode_table(env, ro, iiwa)
+
+
+def test_line_followed_exactly_has_zero_deviation(lines):
+    _, _, t = lines
+    assert t["termination"][1] == "time_budget" and not t["end_reached"][1] and np.isnan(t["stop_time_s"][1])
+    assert t["n_samples"][1] > 150  # > 1.5 rad travelled, sampled every 0.01 rad
+    assert t["joint_dev_max"][1] < 1e-5
+    assert t["cart_pos_dev_cm_max"][1] < 1e-3 and t["cart_rot_dev_deg_max"][1] < 0.1
+
+
+def test_overshoot_after_the_end_gives_the_known_deviations(lines, iiwa):
+    """After the end the robot brakes and overshoots it by ``o``: the reference there is the end
+    knot, so the deviation is ``max(0, s - 1)`` along the path: final ~``o``, mean ~``o^2 / 2(1 + o)``;
+    the tool point is rotated by ``o`` about the vertical base axis: position ``2 r sin(o/2)``,
+    orientation ``o``."""
+    _, ro, t = lines
+    assert t["termination"][0] == "stopped_at_end" and t["end_reached"][0]
+    o = float(ro.p[ro.live[:, 0], 0][-1, 0]) - 1.0
+    assert 0.01 < o < 0.2
+    assert t["success"][0] == (o < 0.05)  # success: stopped within 0.05 rad of the end knot
+    # samples every 0.01 rad up to the travelled 1 + o; the last one is the final value
+    s = 0.01 * np.arange(1, int(np.floor((1.0 + o) / 0.01 + 1e-6)) + 1)
+    dev = np.maximum(s - 1.0, 0.0)
+    assert t["n_samples"][0] == len(s)
+    assert t["joint_dev_final"][0] == pytest.approx(dev[-1], abs=1e-4)
+    assert t["joint_dev_max"][0] == pytest.approx(dev[-1], abs=1e-4)
+    assert t["joint_dev_mean"][0] == pytest.approx(dev.mean(), abs=1e-4)
+    assert dev.mean() == pytest.approx(o * o / (2 * (1 + o)), abs=2e-3)
+    o = dev[-1]  # the overshoot at the final sample
+    x = np.asarray(iiwa.fk(jnp.zeros(7).at[1].set(SHOULDER))[0])[0]
+    r = float(np.hypot(x[0], x[1]))
+    assert r > 0.3
+    assert t["cart_pos_dev_cm_final"][0] == pytest.approx(100 * 2 * r * np.sin(o / 2), rel=2e-3)
+    assert t["cart_rot_dev_deg_final"][0] == pytest.approx(np.degrees(o), abs=0.05)
+
+
+def test_durations_of_the_line_against_the_bang_bang_profile(lines):
+    """Full speed along a 1 rad line: the end is reached no earlier than the acceleration-limited
+    profile (accelerate, cruise: L/v + v/2a) and at most 2 steps later (jerk ramps, decision grid);
+    stopping takes longer than TOPP-RA's rest-to-rest time, by less than 50 %."""
+    env, ro, t = lines
+    v, a = float(env.limits.vel[0]), float(env.limits.acc[0])
+    reach = 1.0 / v + v / (2 * a)
+    assert reach <= t["end_time_s"][0] <= reach + 2 * DT
+    assert t["stop_time_s"][0] == pytest.approx(t["steps"][0] * DT)
+    topp = baseline.baseline_durations(ro.paths, ro.s_start, np.asarray(env.limits.vel), np.asarray(env.limits.acc))
+    assert topp[0] == pytest.approx(baseline.bang_bang_duration(1.0, v, a), rel=2e-3)
+    ratio = baseline.duration_ratio(t["stop_time_s"], topp)
+    assert ratio[0] > 1.0 and ratio[0] < 1.5 and np.isnan(ratio[1])
+
+
+def test_limit_audit_and_aggregate(lines):
+    _, _, t = lines
+    summary = E.aggregate(t)
+    audit = summary["limit_audit"]
+    assert audit["ok"] and max(audit[q] for q in ("pos", "vel", "acc", "jerk")) <= 1 + E.AUDIT_TOLERANCE
+    assert audit["vel"] > 0.99 and audit["acc"] > 0.9  # the limits were used, not just respected
+    assert summary["end_reached_rate"] == 0.5 and summary["termination"]["time_budget"] == 0.5
+    assert summary["stop_time_s_mean"] == pytest.approx(float(t["stop_time_s"][0]))
+    assert summary["joint_dev_max"] == pytest.approx(float(t["joint_dev_max"].max()))
+    json.dumps(summary)  # plain JSON types
+
+
+def test_limit_ratios_flag_a_violation():
+    from mjx_pathtrack.robots import iiwa as I
+
+    lim = I.joint_limits(DT)
+    v = jnp.zeros(7).at[2].set(float(I.VEL[2]) * 0.99)
+    # accelerating on through the velocity limit within the step: the in-step maximum is > 1
+    r = np.asarray(E.limit_ratios(lim, jnp.zeros(7), v, jnp.zeros(7), jnp.zeros(7).at[2].set(2.0), DT))
+    assert r.shape == (4, 7) and r[1, 2] > 1.0 and r[1, 2] == pytest.approx(
+        (0.99 * I.VEL[2] + 0.5 * 2.0 * DT) / I.VEL[2], rel=1e-5)
+    assert r[2, 2] == pytest.approx(2.0 / I.ACC[2], rel=1e-6) and r[3, 2] == pytest.approx(20.0 / float(lim.jerk[2]))
+
+
+# -- evaluate.py ---------------------------------------------------------------------------------
+
+
+def _write_run(run: Path, layers=(16,)):
+    """A run directory with untrained (random) parameters: config.json + params.pkl."""
+    from brax.training.acme import running_statistics, specs
+
+    cfg = TrainConfig(policy_layers=layers, value_layers=(8,), duration=4.0)
+    env = make_env(cfg, "test")
+    nets = ppo_networks(cfg)(env.observation_size, env.action_size,
+                             preprocess_observations_fn=running_statistics.normalize)
+    key = jax.random.PRNGKey(0)
+    norm = running_statistics.init_state(specs.Array((env.observation_size,), jnp.dtype("float32")))
+    params = (norm, nets.policy_network.init(key), nets.value_network.init(key))
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    (run / "params.pkl").write_bytes(pickle.dumps(jax.tree.map(np.asarray, params)))
+    return cfg, env, nets, params
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("eval") / "run"
+    return run, _write_run(run)
+
+
+def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
+    run, _ = tiny_run
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
+    result = subprocess.run([sys.executable, "evaluate.py", str(run), "--episodes", "3", "--timing-decisions", "5",
+                             "--terminate-deviation", "0.3", "--end-tolerance", "0.05", "--out", str(out)],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for heading in ("Table I", "Table VI", "Table IX", "Limit audit", "OK (<= 1)"):
+        assert heading in result.stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["episodes"] == 3 and metrics["limit_audit"]["ok"] and metrics["paths"] == "iiwa/random/test"
+    assert metrics["terminate_deviation"] == 0.3 and metrics["actions"] == "deterministic"
+    assert metrics["end_tolerance"] == 0.05
+    assert metrics["computation_time"]["decisions"] == 5 and 0 < metrics["computation_time"]["max_over_dt"] < 10
+    assert metrics["toppra_duration_s_mean"] > 0
+    rows = (out / "episodes.csv").read_text().strip().splitlines()
+    assert len(rows) == 4 and "toppra_duration_s" in rows[0] and "cart_pos_dev_cm_mean" in rows[0]
+    for name in ("kinematics", "joint_path", "cartesian"):
+        assert (out / f"episode0_{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_evaluate_cli_fails_on_a_missing_directory_before_importing_jax(tmp_path):
+    """evaluate.py checks its cheap arguments before the imports that take seconds."""
+    code = ("import sys, evaluate\n"
+            f"rc = evaluate.main([{str(tmp_path / 'nothing')!r}])\n"
+            "print('rc', rc, 'jax imported', 'jax' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert "rc 2 jax imported False" in result.stdout, result.stdout + result.stderr
+    assert "no run or export directory at" in result.stderr
+
+
+def test_export_dir_gives_the_same_policy(tiny_run, tmp_path):
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    from mjx_pathtrack.deploy.export import export_policy
+
+    run, (cfg, env, nets, params) = tiny_run
+    export_policy(tmp_path / "export", ppo_nets.make_inference_fn(nets), params, env, "iiwa",
+                  robots.load_robot("iiwa").joint_names)
+    from_run, from_export = R.load_policy_source(str(run)), R.load_policy_source(str(tmp_path / "export"))
+    assert from_export.kind == "export" and from_export.max_dis == pytest.approx(env.max_dis)
+    obs = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (5, env.observation_size)), jnp.float32)
+    key = jax.random.PRNGKey(0)
+    np.testing.assert_allclose(np.asarray(from_export.policy(obs, key)), np.asarray(from_run.policy(obs, key)),
+                               atol=1e-5)
+    with pytest.raises(R.EvaluationError, match="only the deterministic policy"):  # an export holds the mean only
+        R.load_policy_source(str(tmp_path / "export"), deterministic=False)
+
+
+def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run):
+    run, (cfg, env, _, _) = tiny_run
+    mean = R.load_policy_source(str(run)).policy
+    sampled = R.load_policy_source(str(run), deterministic=False).policy
+    obs = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (4096, env.observation_size)), jnp.float32)
+    a, b = sampled(obs, jax.random.PRNGKey(0)), sampled(obs, jax.random.PRNGKey(1))
+    assert np.all(np.asarray(a) != np.asarray(b))  # fresh noise for every key, episode and joint
+    noise = np.asarray(a - mean(obs, jax.random.PRNGKey(0)))
+    assert abs(noise.mean()) < 0.05 and 0.5 * cfg.init_noise_std < noise.std() < 2 * cfg.init_noise_std
+
+
+def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
+    run, _ = tiny_run
+    with pytest.raises(R.EvaluationError, match="no run or export directory"):
+        R.load_policy_source(str(tmp_path / "missing"))
+    only_config = tmp_path / "only_config"
+    only_config.mkdir()
+    (only_config / "config.json").write_text((run / "config.json").read_text())
+    with pytest.raises(R.EvaluationError, match="params.pkl missing"):
+        R.load_policy_source(str(only_config))
+    (only_config / "params.pkl").write_bytes(b"\x80\x04not a pickle")
+    with pytest.raises(R.EvaluationError, match="corrupt checkpoint"):
+        R.load_policy_source(str(only_config))
+    other = tmp_path / "other"
+    _write_run(other, layers=(4,))
+    (other / "config.json").write_text((run / "config.json").read_text())  # layers (16,) vs params of (4,)
+    with pytest.raises(R.EvaluationError, match="does not fit"):
+        R.load_policy_source(str(other))
+    (other / "config.json").write_text('{"robot": "iiwa", "bogus": 1}')
+    with pytest.raises(R.EvaluationError, match="corrupt run config"):
+        R.load_policy_source(str(other))
+    bad_paths = tmp_path / "six_joints.csv"
+    bad_paths.write_text("a,b,c,d,e,f\n" + "\n".join(",".join([str(0.1 * i)] * 6) for i in range(3)) + "\n")
+    with pytest.raises(DatasetError, match="6 joint values"):
+        R.user_paths(str(bad_paths), "iiwa")
+    spec = importlib.util.spec_from_file_location("evaluate_cli", REPO / "evaluate.py")
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    assert cli.main([str(tmp_path / "missing")]) == 2
+    assert cli.main([str(run), "--paths", str(bad_paths)]) == 2
+    assert cli.main([str(run), "--terminate-deviation", "-1"]) == 2
+    assert cli.main([str(run), "--end-tolerance", "nan"]) == 2
+    err = capsys.readouterr().err
+    assert "--end-tolerance must be a finite number >= 0" in err
+    assert "no run or export directory" in err and "6 joint values" in err
+    assert "--terminate-deviation must be > 0" in err

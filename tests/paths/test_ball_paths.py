@@ -1,0 +1,65 @@
+"""Ball-balancing dataset: level plate along the committed paths, limits, statistics, reflections,
+determinism of the generator (through generate.py's kind registry)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mjx_pathtrack.paths import datasets
+from mjx_pathtrack.paths import generate
+from mjx_pathtrack.paths import ball as G
+from mjx_pathtrack.robots.registry import load_robot
+
+
+@pytest.fixture(scope="module")
+def kin():
+    return G.PlateKinematics(load_robot("iiwa_ball"))
+
+
+@pytest.fixture(scope="module")
+def test_paths():
+    return datasets.load_split("iiwa", "ball_balancing", "test")
+
+
+def test_committed_paths_keep_the_plate_level_inside_the_limits(kin, test_paths):
+    """FK of the fitted spline every 0.01 rad of arc length (not only the knots): tilt < 1 deg."""
+    lim = load_robot("iiwa").limits
+    worst = 0.0
+    for knots in test_paths + datasets.load_split("iiwa", "ball_balancing", "train")[:20]:
+        worst = max(worst, float(G.path_tilt_deg(kin, knots).max()))
+        datasets.validate_path(knots, lim)
+    assert worst < 1.0
+
+
+def test_committed_statistics_match_the_papers_set(test_paths):
+    """docs/paths.md §4 industrial/ball_balancing/test: knots 12/14/19, 3.2/3.8/5.1 rad, spacing 0.3."""
+    st = datasets.split_stats(test_paths)
+    assert st.n_paths == 200 and st.n_joints == 7
+    assert 11 <= st.knots[0] and 13 <= st.knots[1] <= 16 and st.knots[2] <= 22
+    assert 3.1 <= st.polyline_length[0] and 3.6 <= st.polyline_length[1] <= 4.1 and st.polyline_length[2] <= 5.5
+    assert abs(st.spacing_median - 0.3) < 0.01
+    config = datasets.read_config("iiwa", "ball_balancing")
+    assert config["resampling_distance"] == 0.3 and config["curvature_sampling_distance"] is None
+    assert np.asarray(config["reflection_vectors"]).shape == (4, 7)
+
+
+def test_reflected_paths_stay_level(kin, test_paths):
+    reflected = G.reflect_paths(test_paths[:3])
+    assert len(reflected) == 12
+    np.testing.assert_array_equal(reflected[1], -test_paths[0])
+    assert max(float(G.path_tilt_deg(kin, p).max()) for p in reflected) < 1.0
+    with pytest.raises(ValueError, match="reflection vectors have 7 joints"):
+        G.reflect_paths([np.zeros((3, 6))])
+
+
+def test_generation_is_deterministic_and_registered(tmp_path):
+    dirs = [generate.generate_dataset("iiwa", "ball_balancing", 2, 1, seed=3, root=tmp_path / name)
+            for name in ("a", "b")]
+    for split in ("train", "test"):
+        a, b = (datasets.load_split("iiwa", "ball_balancing", split, root=d.parents[1]) for d in dirs)
+        assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+    other = datasets.load_split("iiwa", "ball_balancing", "train", root=dirs[0].parents[1])
+    assert not np.array_equal(other[0], other[1])
+    with pytest.raises(datasets.DatasetError, match="iiwa only"):
+        G.generate_ball_dataset("armar6", root=tmp_path / "c")

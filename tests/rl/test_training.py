@@ -1,0 +1,455 @@
+"""train.py / training.py on tiny runs: outputs, determinism, resume, two host devices."""
+
+import csv
+import dataclasses
+import json
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mjx_pathtrack  # noqa: F401
+import jax
+import jax.numpy as jnp
+
+from mjx_pathtrack.deploy.export import load_policy
+from mjx_pathtrack.rl import checkpoint
+from mjx_pathtrack.rl.checkpoint import latest_checkpoint
+from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.training import json_safe, make_env, train
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = dict(num_envs=8, num_timesteps=640, unroll_length=5, batch_size=8, num_minibatches=2,
+            num_updates_per_batch=1, num_evals=2, eval_episodes=4, policy_layers=(16,), value_layers=(16,),
+            duration=4.0)
+
+
+def tiny_args(out):
+    args = ["--out", str(out)]
+    for key, value in TINY.items():
+        flag = "--" + key.replace("_", "-")
+        args += [flag, *map(str, value)] if isinstance(value, tuple) else [flag, str(value)]
+    return args
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    config = TrainConfig(**TINY)
+    _, params, report = train(config, out, verbose=False)
+    return out, config, params, report
+
+
+def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
+    out, config, params, report = tiny_run
+    assert TrainConfig.from_json((out / "config.json").read_text()) == config
+    assert set(report) == {"before", "after", "before_sampled", "after_sampled"}
+    for summary in report.values():
+        assert set(summary) >= {"return", "end_reached", "mean_deviation", "stop_time_s"}
+        assert np.isfinite(summary["return"])
+    assert json.loads((out / "report.json").read_text()) == json_safe(report)
+    rows = list(csv.DictReader(open(out / "progress.csv")))
+    assert list(rows[0])[:4] == ["step", "wall_s", "env_steps_per_s", "eta_s"] and len(rows) >= 2  # one per evaluation
+    assert float(rows[0]["step"]) == 0 and float(rows[-1]["step"]) >= config.num_timesteps
+    # the rows show this package's evaluation, deterministic and sampled: the first is the
+    # report's "before", the last its "after"
+    for row, when in ((rows[0], "before"), (rows[-1], "after")):
+        for prefix, key in (("eval", when), ("eval_sampled", f"{when}_sampled")):
+            assert float(row[f"{prefix}/end_reached"]) == pytest.approx(report[key]["end_reached"])
+            assert float(row[f"{prefix}/return"]) == pytest.approx(report[key]["return"])
+    assert report["after"]["return"] != report["after_sampled"]["return"]  # two different policies
+    assert "training/total_loss" in rows[-1] and float(rows[-1]["env_steps_per_s"]) > 0
+    assert any(p.name.startswith("events.out.tfevents") for p in (out / "tensorboard").iterdir())
+    latest = latest_checkpoint(out / "checkpoints")
+    assert latest is not None and latest[1] > 0
+    policy = load_policy(out / "export")
+    assert policy.manifest["robot"] == "iiwa" and policy(np.zeros(94, np.float32)).shape == (7,)
+    saved = pickle.loads((out / "params.pkl").read_bytes())
+    np.testing.assert_array_equal(jax.tree.leaves(saved)[0], np.asarray(jax.tree.leaves(params)[0]))
+
+
+def test_same_seed_same_parameters(tiny_run, tmp_path):
+    _, config, params, _ = tiny_run
+    _, again, _ = train(config, tmp_path, verbose=False)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_resume_continues_from_the_last_checkpoint(tiny_run, tmp_path):
+    out, config, _, _ = tiny_run
+    # a copy of the finished run with a larger budget resumes from its last checkpoint
+    run = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(out), str(run)], check=True)
+    _, done = latest_checkpoint(run / "checkpoints")
+    bigger = TrainConfig(**{**TINY, "num_timesteps": 2 * done})
+    (run / "config.json").write_text(json.dumps({**json.loads((run / "config.json").read_text()),
+                                                 "num_timesteps": 2 * done}))
+    train(bigger, run, resume=True, verbose=False)
+    _, total = latest_checkpoint(run / "checkpoints")
+    assert total > done
+    with pytest.raises(ValueError, match="differs .*seed"):
+        train(TrainConfig(**{**TINY, "seed": 5}), run, resume=True, verbose=False)
+
+
+def test_train_cli_on_two_forced_host_devices(tmp_path):
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    cache = tmp_path / "jax_cache"
+    result = subprocess.run([sys.executable, "train.py", *tiny_args(tmp_path / "run"), "--compilation-cache", str(cache)],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "CpuDevice(id=1)" in result.stdout  # both devices visible to Brax's pmap
+    assert "evaluation after training" in result.stdout
+    assert (tmp_path / "run" / "params.pkl").is_file()
+    assert any(cache.iterdir())  # compiled programs went to the persistent cache
+
+
+def test_compilation_cache_is_opt_in_and_a_bad_directory_is_a_clear_error(tmp_path):
+    import train as cli
+
+    args, _ = cli.parse_args([])
+    assert args.compilation_cache is None
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(SystemExit, match="--compilation-cache .*cannot create"):
+        cli.use_compilation_cache(str(blocker / "cache"))
+
+
+def test_presets_set_the_papers_settings_as_flag_defaults():
+    sys.path.insert(0, str(REPO))
+    import train as cli
+
+    args, cfg = cli.parse_args(["--robot", "armar6"])
+    assert (cfg.robot, cfg.executor, cfg.alpha, cfg.duration, cfg.action_reward) == ("armar6", "kinematic", 1.0, 20.0, 0.0)
+    assert (cfg.num_train_paths, cfg.num_timesteps) == (60, 24_000_000)  # this package's ARMAR-6 budget
+    assert args.out == "runs/armar6_random"
+    args, cfg = cli.parse_args(["--task", "balance", "--legs", "controlled", "--alpha", "3"])
+    assert (cfg.task, cfg.legs, cfg.robot, cfg.executor, cfg.balance_reward) == ("balance", "controlled", "armar4", "mjx", 1.0)
+    assert cfg.alpha == 3.0 and cfg.duration == 20.0 and args.out == "runs/balance_controlled"  # explicit flags win
+    assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--task", "juggling"])
+    assert cli.parse_args(["--knots-frame", "absolute"])[1].env_config().knots_frame == "absolute"
+    assert TrainConfig().knots_frame == "relative"
+    # a run directory from before the option existed observed absolute knots
+    assert TrainConfig.from_json('{"robot": "iiwa"}').knots_frame == "absolute"
+    assert TrainConfig.from_json('{"robot": "iiwa"}').final_noise_std is None  # ... and learned their std
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--knots-frame", "polar"])
+    # a yes/no option is a flag pair, not a value ("--privileged-critic False" would be true)
+    assert cli.parse_args(["--privileged-critic"])[1].privileged_critic is True
+    assert cli.parse_args(["--privileged-critic", "--no-privileged-critic"])[1].privileged_critic is False
+    assert TrainConfig.from_json('{"robot": "iiwa"}').privileged_critic is False
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--privileged-critic", "False"])
+
+
+def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
+    sys.path.insert(0, str(REPO))
+    import train as cli
+    from mjx_pathtrack.rl.config import RECIPES, recipe
+
+    args, cfg = cli.parse_args(["--preset", "paper"])
+    assert args.out == "runs/iiwa_random_paper"
+    assert cfg == TrainConfig(**recipe("paper")) and cfg.num_timesteps > TrainConfig().num_timesteps
+    # the default recipe, longer, with the papers' alpha and more train paths: the privileged
+    # critic, the falling learning rate and predictive braking are the defaults of both
+    default = TrainConfig()
+    assert dataclasses.replace(cfg, num_timesteps=default.num_timesteps, num_evals=default.num_evals,
+                               alpha=default.alpha, num_train_paths=default.num_train_paths) == default
+    assert (cfg.alpha, cfg.num_train_paths) == (2.0, 1000)
+    assert (cfg.privileged_critic, cfg.final_learning_rate, cfg.end_braking) == (True, 3e-5, "predictive")
+    args, cfg = cli.parse_args(["--preset", "paper", "--robot", "armar6", "--num-timesteps", "1000"])
+    # the iiwa's alpha and train paths are not applied to another robot
+    assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.num_evals) == ("armar6", 1.0, 1000, RECIPES["paper"]["num_evals"])
+    assert cfg.num_train_paths == 60
+    # nor to another task or dataset of the iiwa
+    _, cfg = cli.parse_args(["--preset", "paper", "--task", "ball_on_plate"])
+    assert (cfg.alpha, cfg.num_train_paths, cfg.num_timesteps) == (4.0, 0, RECIPES["paper"]["num_timesteps"])
+    _, cfg = cli.parse_args(["--preset", "paper", "--dataset", "target_point"])
+    assert (cfg.alpha, cfg.num_train_paths) == (TrainConfig().alpha, 0)
+    assert args.out == "runs/armar6_random_paper"
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--preset", "fastest"])
+    assert cli.parse_args(["--final-noise-std", "none"])[1].final_noise_std is None  # learned std (Brax's way)
+    assert cli.parse_args(["--mean-clip", "1"])[1].mean_clip == 1.0
+
+
+def test_mean_clip_bounds_the_policy_mean():
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    from mjx_pathtrack.rl.training import ppo_networks
+
+    obs = jax.random.uniform(jax.random.PRNGKey(1), (64, 10), minval=-1, maxval=1)
+    norm = running_statistics.init_state(specs.Array((10,), np.dtype("float32")))
+    means = {}
+    for clip in (None, 1.0):  # a mean head initialised far too large: only the bound keeps it inside (-1, 1)
+        config = TrainConfig(policy_layers=(16,), value_layers=(8,), mean_init_scale=30.0, mean_clip=clip)
+        nets = ppo_networks(config)(10, 3, preprocess_observations_fn=running_statistics.normalize)
+        params = (norm, nets.policy_network.init(jax.random.PRNGKey(0)))
+        means[clip] = np.asarray(ppo_nets.make_inference_fn(nets)(params, deterministic=True)(obs, None)[0])
+    assert np.abs(means[None]).max() > 2.0
+    assert np.abs(means[1.0]).max() < 1.0
+    np.testing.assert_allclose(means[1.0], means[None] / (1.0 + np.abs(means[None])), rtol=1e-5, atol=1e-6)
+
+
+def test_a_privileged_value_network_sees_the_critic_features_and_the_policy_does_not():
+    """``privileged_critic``: the policy's action is the same for the plain observation and for
+    any critic features appended to it, and uses only the statistics of the plain part; the
+    value network's input has the 3 features more and its value depends on them."""
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    from mjx_pathtrack.rl import ppo
+    from mjx_pathtrack.rl.training import ppo_networks
+
+    config = TrainConfig(policy_layers=(16,), value_layers=(8,), mean_init_scale=1.0, privileged_critic=True)
+    nets = ppo_networks(config)(10, 3, preprocess_observations_fn=running_statistics.normalize)
+    k = jax.random.split(jax.random.PRNGKey(2), 4)
+    batch = jax.random.uniform(k[0], (64, 10 + ppo.CRITIC_FEATURES), minval=-1, maxval=1) * 3.0 + 0.5
+    norm = running_statistics.update(running_statistics.init_state(specs.Array((13,), np.dtype("float32"))), batch)
+    params = (norm, nets.policy_network.init(k[1]), nets.value_network.init(k[2]))
+    policy = ppo_nets.make_inference_fn(nets)(params, deterministic=True)
+    plain = np.asarray(policy(batch[:, :10], None)[0])
+    np.testing.assert_array_equal(plain, np.asarray(policy(batch, None)[0]))
+    other = batch.at[:, 10:].set(jax.random.normal(k[3], (64, 3)) * 5.0)
+    np.testing.assert_array_equal(plain, np.asarray(policy(other, None)[0]))
+    # the policy normalises with the statistics of its own 10 inputs: the same as a plain network
+    plain_nets = ppo_networks(TrainConfig(policy_layers=(16,), value_layers=(8,), mean_init_scale=1.0))(
+        10, 3, preprocess_observations_fn=running_statistics.normalize)
+    norm10 = running_statistics.update(running_statistics.init_state(specs.Array((10,), np.dtype("float32"))),
+                                       batch[:, :10])
+    reference = ppo_nets.make_inference_fn(plain_nets)((norm10, params[1]), deterministic=True)(batch[:, :10], None)[0]
+    np.testing.assert_allclose(plain, np.asarray(reference), rtol=1e-5, atol=1e-6)
+    value = nets.value_network.apply(norm, params[2], batch)
+    assert value.shape == (64,)
+    assert not np.allclose(np.asarray(value), np.asarray(nets.value_network.apply(norm, params[2], other)))
+    with pytest.raises(Exception):  # the value network needs the features
+        nets.value_network.apply(norm, params[2], batch[:, :10])
+
+
+def test_critic_features_show_the_budget_the_path_left_and_braking():
+    from mjx_pathtrack.envs.wrappers import CriticFeatures
+
+    config = TrainConfig(**TINY)
+    env = make_env(config, "train")
+    wrapped = CriticFeatures(env)
+    assert wrapped.observation_size == env.observation_size + 3
+    state = jax.jit(wrapped.reset)(jax.random.PRNGKey(3))
+    track = state.pipeline_state
+    np.testing.assert_array_equal(np.asarray(state.obs[:env.observation_size]), np.asarray(jax.jit(env.observe)(track)))
+    path = env.reference(track)
+    horizon = env.config.max_episode_steps()
+    np.testing.assert_allclose(np.asarray(state.obs[env.observation_size:]),
+                               [float(track.max_steps) / horizon,
+                                float(path.length - track.s) / (env.config.n_next * env.max_dis), 0.0], rtol=1e-6)
+    step = jax.jit(wrapped.step)
+    for _ in range(3):
+        state = step(state, jnp.ones(env.action_size))
+    budget_left = state.obs[env.observation_size]
+    assert float(budget_left) == pytest.approx(float(track.max_steps - 3) / horizon, rel=1e-6)
+    assert float(state.obs[env.observation_size + 1]) < float(path.length - track.s) / (env.config.n_next * env.max_dis)
+    braking = state.pipeline_state._replace(braking=jnp.ones((), bool))
+    assert float(env.critic_features(braking)[2]) == 1.0
+
+
+def test_a_run_with_a_privileged_critic_exports_the_plain_policy(tmp_path):
+    """Trained with the critic features, the run's parameters and its export act on the plain
+    94-value observation and agree."""
+    from mjx_pathtrack.evaluation.report import load_policy_source
+
+    config = TrainConfig(**{**TINY, "privileged_critic": True})
+    _, params, report = train(config, tmp_path / "run", verbose=False)
+    assert np.asarray(params[0].mean).shape == (94 + 3,)  # statistics of the critic's input
+    assert np.isfinite(report["after"]["return"])
+    exported = load_policy(tmp_path / "run" / "export")
+    assert exported.observation_size == 94
+    obs = np.asarray(jax.random.uniform(jax.random.PRNGKey(5), (16, 94), minval=-1, maxval=1))
+    from_run = load_policy_source(str(tmp_path / "run")).policy
+    actions = np.clip(np.asarray(from_run(jnp.asarray(obs), jax.random.PRNGKey(0))), -1, 1)
+    np.testing.assert_allclose(actions, exported(obs), rtol=1e-5, atol=1e-6)
+
+
+def test_noise_std_schedule_is_geometric_from_the_initial_to_the_final_std():
+    from mjx_pathtrack.rl import ppo
+
+    config = TrainConfig(init_noise_std=0.5, final_noise_std=0.05)
+    stds = [float(ppo.noise_std(config, f)) for f in (0.0, 0.5, 1.0, 1.5)]
+    np.testing.assert_allclose(stds, [0.5, np.sqrt(0.5 * 0.05), 0.05, 0.05], rtol=1e-5)
+    assert ppo.noise_std(TrainConfig(final_noise_std=None), 0.3) is None  # learned std: no schedule
+
+
+def test_learning_rate_schedule_is_geometric_and_scales_the_update():
+    """``final_learning_rate``: geometric from the rate to the final one (constant when unset); the
+    iteration's step scales with it: at scale 0 the parameters do not move, at 1 they do."""
+    from mjx_pathtrack.rl import ppo
+
+    config = TrainConfig(learning_rate=1e-3, final_learning_rate=1e-5)
+    scales = [float(ppo.learning_rate_scale(config, f)) for f in (0.0, 0.5, 1.0, 1.5)]
+    np.testing.assert_allclose(scales, [1.0, 0.1, 0.01, 0.01], rtol=1e-5)
+    assert float(ppo.learning_rate_scale(TrainConfig(final_learning_rate=None), 0.7)) == 1.0
+
+    tiny = TrainConfig(**{**TINY, "final_noise_std": None})
+    core = ppo.build(tiny, make_env(tiny, "train"))
+    weights = jnp.asarray([tiny.alpha, tiny.beta, tiny.action_reward], jnp.float32)
+    learner = core.init(0, weights, tiny.num_envs)
+    step = jax.jit(lambda learner, scale: core.iteration(weights, learner, None, scale)[0].params)
+    frozen, moved = step(learner, jnp.float32(0.0)), step(learner, jnp.float32(1.0))
+    same = jax.tree.map(lambda a, b: bool(np.array_equal(a, b)), frozen, learner.params)
+    assert all(jax.tree.leaves(same))
+    changed = jax.tree.map(lambda a, b: bool(np.array_equal(a, b)), moved, learner.params)
+    assert not all(jax.tree.leaves(changed))
+
+
+def test_a_scheduled_std_is_not_learned_and_ends_at_the_schedule(tmp_path):
+    """The std the run ends with is the schedule's value at the start of the last iteration (not
+    what Adam would have made of it), in the exported policy's parameters too."""
+    from mjx_pathtrack.rl import ppo
+
+    config = TrainConfig(**{**TINY, "num_timesteps": 1280, "final_noise_std": 0.1})
+    _, params, _ = train(config, tmp_path / "run", verbose=False)
+    log_std = np.asarray(params[1]["params"]["std_logparam"]["log_value"])
+    iterations = 1280 // (8 * 5 * 2)
+    expected = float(ppo.noise_std(config, (iterations - 1) / iterations))
+    np.testing.assert_allclose(np.exp(log_std), expected, rtol=1e-5)
+    assert expected < 0.5
+
+
+# --- exact resume, run-directory safety, clear errors (issue: safety and data) -----------------
+
+EXACT = {**TINY, "num_evals": 4}
+
+
+def test_resume_after_sigkill_ends_with_the_parameters_of_an_uninterrupted_run(tmp_path):
+    """A CLI run killed (SIGKILL) after logging step 2 of 3 but before that checkpoint, then
+    resumed with --resume: parameters bit for bit those of an uninterrupted run, progress.csv
+    without repeated steps, wall_s still increasing. (The child keeps this process's XLA flags
+    as its own, so both compile the same programs.)"""
+    from mjx_pathtrack.rl.training import KILL_VAR
+
+    reference = tmp_path / "reference"
+    _, params, _ = train(TrainConfig(**EXACT), reference, verbose=False)
+    run = tmp_path / "killed"
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", ""))
+    env.pop("MJX_PATHTRACK_ADDED_XLA_FLAG", None)  # the flag counts as the user's: train.py keeps it
+    steps = sorted(int(r["step"]) for r in csv.DictReader(open(reference / "progress.csv")))
+    killed = subprocess.run([sys.executable, "train.py", *tiny_args(run), "--num-evals", "4"], cwd=REPO,
+                            env={**env, KILL_VAR: str(steps[2])}, capture_output=True, text=True, timeout=900)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    assert latest_checkpoint(run / "checkpoints")[1] == steps[1] and not (run / "params.pkl").exists()
+    assert max(int(r["step"]) for r in csv.DictReader(open(run / "progress.csv"))) == steps[2]  # log ahead
+    _, resumed, _ = train(TrainConfig(**EXACT), run, resume=True, verbose=False)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    rows = list(csv.DictReader(open(run / "progress.csv")))
+    assert [int(r["step"]) for r in rows] == steps
+    walls = [float(r["wall_s"]) for r in rows]
+    assert walls == sorted(walls)
+
+
+def test_a_run_directory_holding_a_run_is_refused_and_left_untouched(tiny_run, tmp_path):
+    from mjx_pathtrack.rl.checkpoint import RunDirError
+
+    out, config, _, _ = tiny_run
+    run = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(out), str(run)], check=True)
+    before = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    with pytest.raises(RunDirError, match="holds a training run .*--resume .*--overwrite"):
+        train(config, run, verbose=False)
+    with pytest.raises(RunDirError, match="exclude each other"):
+        train(config, run, resume=True, overwrite=True, verbose=False)
+    # a failing option is refused before anything is written, even with --resume
+    from mjx_pathtrack.rl.config import ConfigError
+
+    with pytest.raises(ConfigError, match="--batch-size"):
+        train(TrainConfig(**{**TINY, "num_envs": 15, "batch_size": 16}), run, resume=True, verbose=False)
+    after = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_overwrite_replaces_the_run_and_a_new_directory_is_removed_when_nothing_was_trained(tmp_path, monkeypatch):
+    from mjx_pathtrack.rl import training
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "params.pkl").write_bytes(b"old")
+    (run / "notes.txt").write_text("mine")
+    checkpoint.clear_run_dir(run)
+    assert not (run / "params.pkl").exists() and (run / "notes.txt").read_text() == "mine"  # only our files
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(training, "_train", broken)
+    new = tmp_path / "new"
+    with pytest.raises(RuntimeError, match="boom"):
+        train(TrainConfig(**TINY), new, verbose=False)
+    assert not new.exists()
+
+
+def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tmp_path, monkeypatch):
+    from mjx_pathtrack.rl import training
+
+    real = training._program
+
+    def poisoned(config, env):
+        program = real(config, env)
+        calls = []
+
+        def epoch(learner, start, end):
+            learner, summary = program.epoch(learner, start, end)
+            calls.append(1)
+            if len(calls) == 2:  # the second interval diverges
+                learner = learner._replace(params=jax.tree.map(lambda x: x * np.nan, learner.params))
+            return learner, summary
+
+        return program._replace(epoch=epoch)
+
+    monkeypatch.setattr(training, "_program", poisoned)
+    run = tmp_path / "run"
+    with pytest.raises(training.TrainingDiverged, match="diverged between steps .*last good checkpoint is .*ckpt"):
+        train(TrainConfig(**EXACT), run, verbose=False)
+    path, step = latest_checkpoint(run / "checkpoints")
+    state = checkpoint.load_checkpoint(path)
+    assert state["step"] == step and all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state["learner"].params))
+    assert not (run / "params.pkl").exists() and not (run / "export").exists()
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--num-envs", "-16"], "--num-envs: must be >= 1"),
+    (["--num-envs", "15", "--batch-size", "16"], "--batch-size: batch_size \\* num_minibatches .* multiple of --num-envs"),
+    (["--dt", "0"], "--dt: must be a finite number > 0"),
+    (["--alpha", "nan"], "--alpha: must be a finite number >= 0"),
+    (["--learning-rate", "inf"], "--learning-rate: must be a finite number > 0"),
+    (["--dataset", "spirals"], "--dataset: no dataset config .*datasets of iiwa: .*random"),
+    (["--executor", "mjx", "--dt", "0.11"], "--dt: 0.11 s must be a whole multiple of the physics step"),
+    (["--gae-lambda", "1.5"], "--gae-lambda: must be in"),
+    (["--final-noise-std", "0"], "--final-noise-std: must be a finite number > 0"),
+    (["--final-learning-rate", "0"], "--final-learning-rate: must be a finite number > 0"),
+])
+def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
+    import train as cli
+    from mjx_pathtrack.rl.config import ConfigError, validate_config
+
+    _, config = cli.parse_args(argv)
+    with pytest.raises(ConfigError, match=message) as e:
+        validate_config(config)
+    assert "\n" not in str(e.value)
+
+
+def test_unknown_robot_and_bad_out_are_clear_cli_errors(tmp_path):
+    """The command line: rc 2 and one line on stderr, before any compiling (a few seconds)."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for argv, message in ((["--robot", "r2d2"], "--robot: unknown robot 'r2d2'"),
+                          (["--out", str(blocker)], f"--out {blocker}: is a file"),
+                          (["--out", str(blocker / "run")], "cannot create or write it")):
+        result = subprocess.run([sys.executable, "train.py", *argv], cwd=REPO, capture_output=True, text=True,
+                                timeout=300)
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert message in result.stderr and "Traceback" not in result.stderr
+        assert "Failed to import" not in result.stdout  # mujoco.mjx's Warp notices are silenced
