@@ -44,6 +44,13 @@ def parse_args(argv=None):
     parser.add_argument("--end-braking", choices=("at_end", "predictive"), default=None,
                         help="when braking at the path end starts, instead of the training config's: at_end (the "
                              "papers: once the end is reached) or predictive (once the fastest stop would reach it)")
+    parser.add_argument("--end-stop", choices=("fastest", "end_knot"), default=None,
+                        help="how the robot stops at the path end, instead of the training config's: fastest (the "
+                             "papers: every joint brakes on its own) or end_knot (every path joint comes to rest at "
+                             "the end knot)")
+    parser.add_argument("--end-knot-tolerance", type=float, default=None, metavar="RAD",
+                        help="with --end-stop end_knot: a joint brakes once its stop ends this close to its end-knot "
+                             "coordinate (smaller: closer to the end knot, slower), instead of the training config's")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--jerk-optimum", action="store_true",
                         help="also the jerk-limited time-optimal duration of every episode (TOPP3 of copp-py, ~1 s "
@@ -78,6 +85,13 @@ def main(argv=None) -> int:
         if args.end_braking is not None:
             source = dataclasses.replace(source, config=dataclasses.replace(
                 source.config, end_braking=args.end_braking))
+        if args.end_stop is not None:
+            source = dataclasses.replace(source, config=dataclasses.replace(source.config, end_stop=args.end_stop))
+        if args.end_knot_tolerance is not None:
+            if not (args.end_knot_tolerance > 0 and args.end_knot_tolerance < float("inf")):
+                raise R.EvaluationError(f"--end-knot-tolerance must be a finite number > 0, got {args.end_knot_tolerance}")
+            source = dataclasses.replace(source, config=dataclasses.replace(
+                source.config, end_knot_tolerance=args.end_knot_tolerance))
         if args.end_tolerance is not None:
             if not (args.end_tolerance >= 0 and args.end_tolerance < float("inf")):
                 raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
@@ -98,7 +112,8 @@ def main(argv=None) -> int:
             "seed": args.seed, "full_paths": args.full_paths,
             "actions": "sampled" if args.stochastic else "deterministic",
             "terminate_deviation": source.config.terminate_deviation, "end_tolerance": source.config.end_tolerance,
-            "end_braking": source.config.end_braking,
+            "end_braking": source.config.end_braking, "end_stop": source.config.end_stop,
+            "end_knot_tolerance": source.config.end_knot_tolerance,
             "plot_episode": episode}
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
              f"{', sampled actions' if args.stochastic else ''})")

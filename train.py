@@ -44,11 +44,12 @@ def _optional(kind):
 
 
 def parse_args(argv=None):
-    from mjx_pathtrack.envs.tracking import END_BRAKING, KNOTS_FRAMES
+    from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES
     from mjx_pathtrack.rl.config import EXECUTORS, RECIPES, TASKS, TrainConfig, preset, recipe
 
     defaults = TrainConfig()
-    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING}
+    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING,
+               "end_stop": END_STOP}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "

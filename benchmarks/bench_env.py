@@ -4,7 +4,8 @@ Run: python benchmarks/bench_env.py [--batch 2048] [--repeats 20] [--executor ki
 With several local devices (on CPU: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``) it
 also measures the batch sharded over them with ``jax.pmap``, as Brax PPO runs it.
 Prints steps/s of the full step and of its parts measured in the same run (safe range, the
-rest), so the ratio shows where the time goes. Uses the committed iiwa random test split.
+rest), so the ratio shows where the time goes, and the step with the papers' stop at the path end
+(``end_stop="fastest"``) against the default stop at the end knot. Uses the committed iiwa random test split.
 Floors (issue 5, batch 2048, CPU): kinematic 200,000 env steps/s; mjx (24 physics sub-steps
 per decision step) 3,000 decision steps/s.
 
@@ -76,11 +77,17 @@ def main() -> None:
     safe = rate(jax.jit(jax.vmap(lambda t: L.safe_acceleration_range(env.limits, t.p, t.v, t.a, env.config.dt))),
                 tracks, args.batch, args.repeats)
     observe = rate(jax.jit(jax.vmap(env.observe)), tracks, args.batch, args.repeats)
+    # the same step with the papers' stop at the end (every joint brakes on its own) instead of
+    # the default stop at the end knot, on the same states
+    papers_stop = make_env(TrainConfig(executor=args.executor, end_stop="fastest"), "test")
+    fastest = rate(jax.jit(jax.vmap(papers_stop.step)), cycle, args.batch, args.repeats)
     print(f"device: {jax.devices()[0].platform}  batch {args.batch}  iiwa random test split  "
           f"{len(cycle)} rollout states")
     print(f"{'env.step (' + args.executor + ')':<27}: {full:12,.0f} env-steps/s")
     print(f"  safe range alone         : {safe:12,.0f} env-steps/s  (~{100 * full / safe:3.0f} % of the step time)")
     print(f"  observation alone        : {observe:12,.0f} env-steps/s")
+    print(f"env.step, end_stop=fastest : {fastest:12,.0f} env-steps/s  (the stop at the end knot costs "
+          f"{fastest / full:.2f}x the step time of the papers' stop)")
     devices = jax.local_device_count()
     if devices > 1 and args.batch % devices == 0:
         # the batch sharded over all local devices, as Brax PPO does (jax.pmap)

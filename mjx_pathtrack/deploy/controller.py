@@ -113,7 +113,9 @@ class OnlineTracker:
     ``knots_frame`` to the papers' "absolute" observation); end_tolerance [rad]: brake to a stop
     once within this arc length of the path end (``EnvConfig.end_tolerance``; 0: at the end);
     end_braking: when braking at the end starts (``EnvConfig.end_braking``; from the manifest of
-    an export, else "at_end");
+    an export, else "at_end"); end_stop: how the robot stops there (``EnvConfig.end_stop``; from
+    the manifest, else "fastest"; ``end_knot_tolerance`` [rad] with it); a fault always brakes every
+    joint as fast as it can;
     position ``[n]`` current joint positions, velocity / acceleration ``[n]`` (default 0);
     controller_dt [s]: setpoint period, must divide ``dt``; max_knots: capacity of the reference.
     Raises ``ValueError`` for inconsistent inputs or an unsafe initial state.
@@ -123,7 +125,8 @@ class OnlineTracker:
                  controller_dt: float, limits: L.JointLimits | None = None, dt: float | None = None,
                  n_next: int | None = None, max_dis_between_knots: float | None = None, path_joints=None,
                  max_knots: int = MAX_KNOTS, knots_frame: str | None = None, end_tolerance: float = 0.0,
-                 end_braking: str | None = None):
+                 end_braking: str | None = None, end_stop: str | None = None,
+                 end_knot_tolerance: float | None = None):
         manifest = getattr(policy, "manifest", None)
         if manifest is not None:
             lim = manifest["limits"]
@@ -133,17 +136,22 @@ class OnlineTracker:
                                      lim["jerk"], names=manifest.get("joint_names")),
                 dt=manifest["dt"], n_next=manifest["n_next"], max_dis_between_knots=manifest["max_dis_between_knots"],
                 path_joints=manifest["path_joints"], knots_frame=manifest.get("knots_frame", "absolute"),
-                end_braking=manifest.get("end_braking", "at_end"))
+                end_braking=manifest.get("end_braking", "at_end"), end_stop=manifest.get("end_stop", "fastest"),
+                end_knot_tolerance=manifest.get("end_knot_tolerance", EnvConfig.end_knot_tolerance))
             given = dict(limits=limits, dt=dt, n_next=n_next, max_dis_between_knots=max_dis_between_knots,
-                         path_joints=path_joints, knots_frame=knots_frame, end_braking=end_braking)
+                         path_joints=path_joints, knots_frame=knots_frame, end_braking=end_braking, end_stop=end_stop,
+                         end_knot_tolerance=end_knot_tolerance)
             clash = [k for k, v in given.items() if v is not None]
             if clash:
                 raise ValueError(f"{', '.join(clash)} come(s) from the export manifest; do not pass them")
             limits, dt, n_next = from_manifest["limits"], from_manifest["dt"], from_manifest["n_next"]
             max_dis_between_knots, path_joints = from_manifest["max_dis_between_knots"], from_manifest["path_joints"]
             knots_frame, end_braking = from_manifest["knots_frame"], from_manifest["end_braking"]
+            end_stop, end_knot_tolerance = from_manifest["end_stop"], from_manifest["end_knot_tolerance"]
         knots_frame = "absolute" if knots_frame is None else knots_frame
         end_braking = "at_end" if end_braking is None else end_braking
+        end_stop = "fastest" if end_stop is None else end_stop
+        end_knot_tolerance = EnvConfig.end_knot_tolerance if end_knot_tolerance is None else float(end_knot_tolerance)
         if not callable(policy):
             raise ValueError(f"policy must be callable obs -> action, got {type(policy).__name__}")
         missing = [k for k, v in dict(limits=limits, dt=dt, n_next=n_next,
@@ -189,7 +197,7 @@ class OnlineTracker:
         placeholder = S.make_path(np.stack([here, here + 1e-3]), self.max_knots)
         config = EnvConfig(dt=dt, n_next=int(n_next), substeps=k, deviation_samples=max(k, 1), terminate_deviation=None,
                            adjustable=True, knots_frame=knots_frame, end_tolerance=float(end_tolerance),
-                           end_braking=end_braking)
+                           end_braking=end_braking, end_stop=end_stop, end_knot_tolerance=end_knot_tolerance)
         self.env = PathTrackingEnv(limits, jax.tree.map(lambda x: x[None], placeholder), float(max_dis_between_knots),
                                    config, path_joints=self.path_joints)
         self.observation_size, self.n_joints, self.n_path = self.env.observation_size, n, m
@@ -208,7 +216,7 @@ class OnlineTracker:
         # one compilation per configuration (shared by trackers with equal settings)
         key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), dt, k, int(n_next),
                float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots, knots_frame,
-               float(end_tolerance), end_braking)
+               float(end_tolerance), end_braking, end_stop, end_knot_tolerance)
         if key not in _COMPILED:
             _COMPILED[key] = (jax.jit(functools.partial(_step_core, self.env, controller_dt)), jax.jit(_replace_core),
                               jax.jit(self.env.observe))
@@ -394,7 +402,7 @@ def _step_core(env: PathTrackingEnv, controller_dt: float, core: _Core, action: 
     fault = core.fault | bad_action
     end_braking = track.braking
     action = jnp.where(fault, 0.0, action)
-    new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action)
+    new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action, fastest_stop=fault)
     length = new.path.length
     reached = env.end_reached(new.path, new.s)
     new = new._replace(braking=end_braking | reached)

@@ -84,6 +84,8 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "n_next": int(env.config.n_next),
         "knots_frame": env.config.knots_frame,
         "end_braking": env.config.end_braking,
+        "end_stop": env.config.end_stop,
+        "end_knot_tolerance": float(env.config.end_knot_tolerance),
         "max_dis_between_knots": float(env.max_dis),
         "limits": {"pos_min": _finite_or_none(lim.pos_min), "pos_max": _finite_or_none(lim.pos_max),
                    "vel": _finite_or_none(lim.vel), "acc": _finite_or_none(lim.acc),

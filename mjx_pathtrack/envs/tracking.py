@@ -42,6 +42,8 @@ Array = jax.Array
 KNOTS_FRAMES = ("absolute", "relative")
 #: when braking at the end of the path starts (:class:`EnvConfig` ``end_braking``)
 END_BRAKING = ("at_end", "predictive")
+#: how the robot stops at the end of the path (:class:`EnvConfig` ``end_stop``)
+END_STOP = ("fastest", "end_knot")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +69,14 @@ class EnvConfig:
     remaining arc length is at most the length of that stop (:meth:`PathTrackingEnv.stop_length`,
     predicted without position limits). A policy that arrives at speed then stops at the end
     instead of overshooting it by its braking distance; braking itself is the same.
+    end_stop: how the robot stops once braking at the end started: ``"fastest"`` (the papers):
+    every joint brakes on its own as fast as its limits allow, so the joints come to rest at
+    different times and the robot ends beside the path; ``"end_knot"``: every path joint comes
+    to rest at its coordinate of the end knot (:meth:`PathTrackingEnv.end_knot_acceleration`),
+    as fast as the limits allow; the safe range still bounds every acceleration.
+    end_knot_tolerance [rad]: with ``end_stop="end_knot"``, a joint whose fastest stop ends this
+    close to its end-knot coordinate brakes instead of approaching further: a smaller value ends
+    closer to the end knot and takes longer (measured in docs/results.md "The final deviation").
     knots_frame: ``"absolute"`` (the papers' observation: knot positions normalised by the joint
     ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
     max_dis_between_knots``): same size, but the policy need not learn the subtraction (docs/results.md
@@ -93,10 +103,16 @@ class EnvConfig:
     knots_frame: str = "absolute"
     end_tolerance: float = 0.0
     end_braking: str = "at_end"
+    end_stop: str = "fastest"
+    end_knot_tolerance: float = 0.05
 
     def __post_init__(self):
         if self.end_braking not in END_BRAKING:
             raise ValueError(f"unknown end_braking {self.end_braking!r}; known: {', '.join(END_BRAKING)}")
+        if self.end_stop not in END_STOP:
+            raise ValueError(f"unknown end_stop {self.end_stop!r}; known: {', '.join(END_STOP)}")
+        if not (np.isfinite(self.end_knot_tolerance) and self.end_knot_tolerance > 0.0):
+            raise ValueError(f"end_knot_tolerance must be a finite number > 0 [rad], got {self.end_knot_tolerance}")
         if self.knots_frame not in KNOTS_FRAMES:
             raise ValueError(f"unknown knots_frame {self.knots_frame!r}; known: {', '.join(KNOTS_FRAMES)}")
         if not (np.isfinite(self.end_tolerance) and self.end_tolerance >= 0.0):
@@ -265,8 +281,10 @@ class PathTrackingEnv(Env):
                                braking=track.braking & self.end_reached(path, track.s))
         return state.replace(pipeline_state=track, obs=self.observe(track))
 
-    def transition(self, track: TrackState, action: Array):
-        """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``."""
+    def transition(self, track: TrackState, action: Array, fastest_stop: Array | bool = False):
+        """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``.
+        ``fastest_stop`` (bool ``[]``): while braking, brake every joint as fast as it can even
+        with ``end_stop="end_knot"`` (the online tracker's faults)."""
         cfg, lim = self.config, self.limits
         path = self.reference(track)
         # the safe range of the current state (computed here rather than at the end of the
@@ -274,6 +292,9 @@ class PathTrackingEnv(Env):
         a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, cfg.dt)
         a_policy = L.action_to_acceleration(action, a_min, a_max)
         a_brake = L.braking_acceleration(lim, track.p, track.v, track.a, cfg.dt, safe_range=(a_min, a_max))
+        if cfg.end_stop == "end_knot":
+            a_brake = jnp.where(fastest_stop, a_brake,
+                                self.end_knot_acceleration(track, S.end_knot(path), a_brake, (a_min, a_max)))
         # (materialised: the executor's set-points and the integration would each recompute it)
         a_next = L.materialized(jnp.where(track.braking, a_brake, a_policy))
         # executed positions at the sub-steps of the step, start point included: [S+1, n]
@@ -319,6 +340,14 @@ class PathTrackingEnv(Env):
         braking accelerations (:func:`~mjx_pathtrack.core.limits.braking_acceleration`, jerk and
         acceleration limits, position limits ignored) integrated over :attr:`stop_steps`
         decision steps, as the polyline through the decision instants."""
+        return self._fastest_stop(p, v, a)[1]
+
+    def stop_position(self, p: Array, v: Array, a: Array) -> Array:
+        """Joint positions ``[n]`` where the fastest stop from ``(p, v, a) [n]`` comes to rest
+        (as :meth:`stop_length`)."""
+        return self._fastest_stop(p, v, a)[0]
+
+    def _fastest_stop(self, p: Array, v: Array, a: Array) -> tuple[Array, Array]:
         lim, dt, pj = self.limits, self.config.dt, self.path_joints
         free = (-lim.acc, lim.acc)
 
@@ -328,8 +357,36 @@ class PathTrackingEnv(Env):
             p1, v1, _ = L.integrate(p, v, a, a1, dt, dt)
             return (p1, v1, a1), jnp.linalg.norm(p1[pj] - p[pj])
 
-        _, lengths = jax.lax.scan(step, (p, v, a), None, length=self.stop_steps)
-        return jnp.sum(lengths)
+        (p_end, _, _), lengths = jax.lax.scan(step, (p, v, a), None, length=self.stop_steps)
+        return p_end, jnp.sum(lengths)
+
+    def end_knot_acceleration(self, track: TrackState, end: Array, a_brake: Array,
+                              safe_range: tuple[Array, Array]) -> Array:
+        """Next acceleration ``[n]`` of a stop at the end knot ``end [m]`` (``end_stop="end_knot"``).
+
+        A path joint on one side of its end-knot coordinate whose fastest stop
+        (:meth:`stop_position`) would come to rest more than ``end_knot_tolerance`` short of it
+        moves towards the coordinate as fast as it can while it can still stop there: the bound
+        of the safe acceleration range computed with the coordinate as the position limit on its
+        side (the joint's position shifted so that the coordinate lies on the real limit, which
+        keeps the range's static per-joint plan). Otherwise (the stop ends within the tolerance,
+        or beyond the coordinate, or the joint is off the path) it brakes (``a_brake``: the
+        fastest stop, which settles; the approach alone would chatter around the coordinate on
+        the decision grid), and approaches again from the other side once at rest. Everything is clipped to the state's ``safe_range``
+        ``(a_min, a_max)``, so the limits hold exactly as for any other acceleration."""
+        lim, dt = self.limits, self.config.dt
+        target = track.p.at[self.path_joints].set(end)
+        stop = self.stop_position(track.p, track.v, track.a)
+        # short of the coordinate (and not beyond it): approach from below; the mirror image above
+        tol = self.config.end_knot_tolerance
+        up = (stop < target - tol) & (track.p <= target)
+        down = (stop > target + tol) & (track.p >= target)
+        shift = jnp.where(up, lim.pos_max - target, lim.pos_min - target)
+        lo, hi = L.safe_acceleration_range(lim, track.p + shift, track.v, track.a, dt)
+        toward = jnp.clip(jnp.where(up, hi, lo), *safe_range)
+        on_path = np.zeros(lim.n_joints, bool)
+        on_path[np.asarray(self.path_joints)] = True
+        return jnp.where(on_path & (up | down), toward, a_brake)
 
     @property
     def stop_steps(self) -> int:

@@ -67,6 +67,12 @@ class TrainConfig:
     #: the end knot instead of overshooting it by its braking distance, docs/results.md "Learning
     #: recipe") or "at_end" (the papers' rule)
     end_braking: str = "predictive"
+    #: how the robot stops at the end: "end_knot" (every path joint comes to rest within
+    #: ``end_knot_tolerance`` of its end-knot coordinate, env.EnvConfig.end_stop: the final
+    #: deviation halves for 2-3 % more time, docs/results.md "The final deviation") or "fastest"
+    #: (the papers: every joint brakes on its own and the robot ends beside the path)
+    end_stop: str = "end_knot"
+    end_knot_tolerance: float = 0.05
     action_reward: float = 0.4
     duration: float = 16.0
     num_envs: int = 256
@@ -120,7 +126,8 @@ class TrainConfig:
 
             weights = humanoid_balance.balance_weights(self.balance_reward, weights)
         return EnvConfig(dt=self.dt, n_next=self.n_next, knots_frame=self.knots_frame, end_tolerance=self.end_tolerance,
-                         end_braking=self.end_braking,
+                         end_braking=self.end_braking, end_stop=self.end_stop,
+                         end_knot_tolerance=self.end_knot_tolerance,
                          duration=self.duration,
                          terminate_deviation=self.terminate_deviation,
                          deviation_weights=DEVIATION_WEIGHTS.get(self.robot),
@@ -136,6 +143,7 @@ class TrainConfig:
         # ... and, before these options existed, braked at the end, kept the learning rate and had
         # a value network that saw the policy's observation only
         data.setdefault("end_braking", "at_end")
+        data.setdefault("end_stop", "fastest")  # ... and stopped every joint as fast as it could
         data.setdefault("final_learning_rate", None)
         data.setdefault("privileged_critic", False)
         for key in ("policy_layers", "value_layers"):
@@ -210,10 +218,11 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         raise ConfigError(f"--{option.replace('_', '-')}: {message}")
 
     choices = {"executor": EXECUTORS, "task": TASKS}
-    from mjx_pathtrack.envs.tracking import END_BRAKING, KNOTS_FRAMES
+    from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES
 
     choices["knots_frame"] = KNOTS_FRAMES
     choices["end_braking"] = END_BRAKING
+    choices["end_stop"] = END_STOP
     for name, allowed in choices.items():
         if getattr(c, name) not in allowed:
             fail(name, f"{getattr(c, name)!r} is not one of {', '.join(allowed)}")
@@ -224,7 +233,7 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
 
         if c.legs not in LEGS:
             fail("legs", f"{c.legs!r} is not one of {', '.join(LEGS)}")
-    for name in ("dt", "duration", "learning_rate", "init_noise_std", "mean_init_scale", "deviation_threshold",
+    for name in ("dt", "duration", "end_knot_tolerance", "learning_rate", "init_noise_std", "mean_init_scale", "deviation_threshold",
                  "terminate_deviation"):
         value = getattr(c, name)
         if not (np.isfinite(value) and value > 0):

@@ -208,8 +208,10 @@ def test_reference_replaced_at_every_step_keeps_capacity_and_limits():
     assert t._replace_fn._cache_size() == 1
 
 
-def test_bad_path_mid_motion_errors_and_brakes_to_a_safe_stop():
-    t = tracker(steering_policy)
+@pytest.mark.parametrize("end_stop", ["fastest", "end_knot"])
+def test_bad_path_mid_motion_errors_and_brakes_to_a_safe_stop(end_stop):
+    """(A fault brakes every joint as fast as it can, whatever the stop at the path end.)"""
+    t = tracker(steering_policy, end_stop=end_stop)
     audit = Auditor(t)
     t.set_path(straight_path(np.zeros(N), np.full(N, 1.5), 12)[1:])
     for _ in range(8):
@@ -273,6 +275,22 @@ def test_end_of_path_brakes_to_a_stop_and_holds():
     assert audit.step().status is Status.TRACKING
 
 
+def test_end_knot_stop_holds_at_the_end_knot():
+    """With end_stop="end_knot" a bang-bang policy's run ends at rest with every joint within the
+    tolerance of the end knot, every setpoint within the limits; the fastest stop ends farther."""
+    knots = np.array([[0.1, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0], [0.2, 0.1, 0.1, 0.0, 0.0, 0.0, 0.0]])
+    miss = {}
+    for end_stop in ("fastest", "end_knot"):
+        t = tracker(random_policy(3, "bang"), end_stop=end_stop, end_braking="predictive")
+        audit = Auditor(t)
+        t.set_path(knots)
+        end = audit.run_until_stopped(80)
+        assert end.reached_end and end.fault is None and audit.worst <= REL
+        miss[end_stop] = np.abs(end.position[-1] - knots[-1])
+    assert miss["end_knot"].max() <= 0.05 + 1e-3
+    assert np.linalg.norm(miss["end_knot"]) < np.linalg.norm(miss["fastest"])
+
+
 def test_end_tolerance_brakes_to_a_stop_short_of_the_end():
     """A policy that stalls short of the path end (here: it keeps the robot still) never reaches
     it; with end_tolerance covering the rest of the path the tracker brakes and stops."""
@@ -305,16 +323,18 @@ def test_policy_faults_brake_instead_of_raising():
         assert audit.worst <= REL
 
 
-@pytest.mark.parametrize("knots_frame,end_braking", [("absolute", "at_end"), ("relative", "at_end"),
-                                                     ("relative", "predictive")])
-def test_observation_and_step_equal_the_environment(knots_frame, end_braking):
+@pytest.mark.parametrize("knots_frame,end_braking,end_stop", [("absolute", "at_end", "fastest"),
+                                                              ("relative", "at_end", "fastest"),
+                                                              ("relative", "predictive", "fastest"),
+                                                              ("relative", "predictive", "end_knot")])
+def test_observation_and_step_equal_the_environment(knots_frame, end_braking, end_stop):
     """The tracker feeds the policy the environment's observation and moves like env.step, to
-    the stop at the end of the path (braking by the same rule)."""
+    the stop at the end of the path (braking and stopping by the same rules)."""
     knots = straight_path(np.zeros(N), np.array([0.8, -0.5, 0.6, 0.4, -0.3, 0.2, 0.9]), 9)
-    t = tracker(steering_policy, knots_frame=knots_frame, end_braking=end_braking)
+    t = tracker(steering_policy, knots_frame=knots_frame, end_braking=end_braking, end_stop=end_stop)
     t.set_path(knots[1:])
     cfg = EnvConfig(dt=DT, n_next=N_NEXT, substeps=20, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
-                    adjustable=True, knots_frame=knots_frame, end_braking=end_braking)
+                    adjustable=True, knots_frame=knots_frame, end_braking=end_braking, end_stop=end_stop)
     env = PathTrackingEnv(LIM, S.stack_paths([S.make_path(knots, t.max_knots)]), MAX_DIS, cfg)
     state = env.reset(jax.random.PRNGKey(0))
     np.testing.assert_allclose(t.observation(), np.asarray(state.obs), atol=1e-6)

@@ -291,3 +291,83 @@ def test_path_replaced_mid_episode_continues_within_limits():
     with pytest.raises(ValueError, match="adjustable"):
         plain = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(n_paths=1), 0.5)
         plain.replace_reference(plain.reset(jax.random.PRNGKey(0)), jnp.zeros((3, 7)))
+
+
+def _stop_rollout(dt: float, end_stop: str, jerk_factor: float = 1.0, batch: int = 48, tolerance: float = 0.05):
+    """Short sub-paths driven by random (first half) and bang-bang (second half) actions until
+    every episode is done, batched and jitted as in training (the package's rollout engine).
+    Returns per episode: done by the stop at the end, the final state, the end knot, and the
+    largest in-step |x| / limit over every live step (position, velocity, acceleration, jerk)."""
+    from mjx_pathtrack.core import spline as S
+    from mjx_pathtrack.envs.episodes import run_episodes
+    from mjx_pathtrack.evaluation.rollout import limit_ratios
+
+    cfg = EnvConfig(dt=dt, substeps=max(int(round(dt / 0.1 * 24)), 1), start_range=(0.85, 0.9), min_fraction=0.05,
+                    max_fraction=0.1, terminate_deviation=None, end_braking="predictive", end_stop=end_stop,
+                    end_knot_tolerance=tolerance, duration=200.0)
+    env = PathTrackingEnv(iiwa.joint_limits(dt, jerk_factor), random_walk_paths(), 0.5, cfg)
+    steps = int(round(12.0 / dt))
+
+    def policy(obs, key):
+        k1, k2 = jax.random.split(key)
+        random = jax.random.uniform(k1, (batch, 7), minval=-1.0, maxval=1.0)
+        extreme = jnp.sign(jax.random.normal(k2, (batch, 7)))
+        return jnp.where(jnp.arange(batch)[:, None] < batch // 2, random, extreme)
+
+    def accumulate(acc, before, after, live, _):
+        ratio = limit_ratios(env.limits, before.pipeline_state.p, before.pipeline_state.v, before.pipeline_state.a,
+                             after.pipeline_state.a, dt)
+        stopped = live & (after.done > 0) & (after.metrics["reached_end"] > 0)
+        return jnp.maximum(acc[0], jnp.where(live[:, None, None], ratio, 0.0)), acc[1] | stopped
+
+    @jax.jit
+    def run(key):
+        k_reset, k_run = jax.random.split(key)
+        state = jax.vmap(env.reset)(jax.random.split(k_reset, batch))
+        init = (jnp.zeros((batch, 4, 7)), jnp.zeros(batch, bool))
+        final, _ = run_episodes(jax.vmap(env.step), policy, state, jax.random.split(k_run, steps), accumulate, init)
+        track = final.state.pipeline_state
+        ends = jax.vmap(lambda t: S.end_knot(env.episode_path(t)))(track)
+        return final.acc, final.done, track, ends
+
+    (worst, stopped), done, track, ends = jax.device_get(run(jax.random.PRNGKey(5)))
+    return stopped & done, track, ends, worst
+
+
+@pytest.mark.parametrize("dt, jerk_factor", [(0.1, 1.0), (0.05, 1.0), (0.1, 0.25), (0.4, 1.0)])
+def test_end_knot_stop_rests_at_the_end_knot_within_every_limit(dt, jerk_factor):
+    """EnvConfig.end_stop="end_knot" after random and bang-bang motion, at short and long dt and
+    with a binding jerk limit: every limit holds at every instant of every step (braking phase
+    included), every episode stops at the end, and there every joint rests within the tolerance
+    of its end-knot coordinate; the papers' fastest stop ends farther away."""
+    tol = 0.05
+    stopped, track, ends, worst = _stop_rollout(dt, "end_knot", jerk_factor, tolerance=tol)
+    assert np.all(worst <= 1.0 + 1e-6), f"limit ratios up to {worst.max(axis=(0, 2))} (pos, vel, acc, jerk)"
+    assert stopped.all(), f"{int((~stopped).sum())} of {len(stopped)} episodes did not stop at the end"
+    assert np.all(np.abs(track.v) < 0.01) and np.all(np.abs(track.a) < 0.01)
+    miss = np.abs(track.p - ends)
+    assert miss.max() <= tol + 1e-3, f"a joint rests {miss.max():.4f} rad from its end-knot coordinate"
+    fastest_stopped, fastest_track, fastest_ends, fastest_worst = _stop_rollout(dt, "fastest", jerk_factor)
+    assert np.all(fastest_worst <= 1.0 + 1e-6)
+    fastest_miss = np.linalg.norm(fastest_track.p - fastest_ends, axis=-1)[fastest_stopped]
+    assert np.mean(np.linalg.norm(miss, axis=-1)) < 0.5 * np.mean(fastest_miss)
+
+
+def test_end_knot_stop_gives_way_to_the_fastest_stop_and_rejects_bad_settings():
+    """``transition(..., fastest_stop=True)`` (the online tracker's faults) brakes every joint as
+    fast as it can even with end_stop="end_knot"; bad settings are refused by name."""
+    paths = random_walk_paths(n_paths=2)
+    lim = iiwa.joint_limits(DT)
+    knot = PathTrackingEnv(lim, paths, 0.5, EnvConfig(end_stop="end_knot", terminate_deviation=None))
+    fast = PathTrackingEnv(lim, paths, 0.5, EnvConfig(end_stop="fastest", terminate_deviation=None))
+    track = knot.reset(jax.random.PRNGKey(0)).pipeline_state
+    moving = track._replace(v=0.5 * lim.vel * jnp.array([1, -1, 1, -1, 1, -1, 1.0]), braking=jnp.ones((), bool))
+    a_fast = fast.transition(moving, jnp.zeros(7))[0].a
+    a_fault = knot.transition(moving, jnp.zeros(7), fastest_stop=True)[0].a
+    a_knot = knot.transition(moving, jnp.zeros(7))[0].a
+    assert np.array_equal(np.asarray(a_fault), np.asarray(a_fast))
+    assert not np.array_equal(np.asarray(a_knot), np.asarray(a_fast))  # (the end knot is not where the stop ends)
+    with pytest.raises(ValueError, match="end_stop"):
+        EnvConfig(end_stop="soon")
+    with pytest.raises(ValueError, match="end_knot_tolerance"):
+        EnvConfig(end_knot_tolerance=0.0)

@@ -143,6 +143,11 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert cli.parse_args(["--privileged-critic"])[1].privileged_critic is True
     assert cli.parse_args(["--privileged-critic", "--no-privileged-critic"])[1].privileged_critic is False
     assert TrainConfig.from_json('{"robot": "iiwa"}').privileged_critic is False
+    # new runs stop at the end knot; runs from before the option stopped every joint as fast as it could
+    assert (TrainConfig().end_stop, TrainConfig.from_json('{"robot": "iiwa"}').end_stop) == ("end_knot", "fastest")
+    assert cli.parse_args(["--end-stop", "fastest"])[1].env_config().end_stop == "fastest"
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--end-stop", "never"])
     with pytest.raises(SystemExit):
         cli.parse_args(["--privileged-critic", "False"])
 
@@ -161,7 +166,8 @@ def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
     assert dataclasses.replace(cfg, num_timesteps=default.num_timesteps, num_evals=default.num_evals,
                                alpha=default.alpha, num_train_paths=default.num_train_paths) == default
     assert (cfg.alpha, cfg.num_train_paths) == (2.0, 1000)
-    assert (cfg.privileged_critic, cfg.final_learning_rate, cfg.end_braking) == (True, 3e-5, "predictive")
+    assert (cfg.privileged_critic, cfg.final_learning_rate, cfg.end_braking, cfg.end_stop) == (
+        True, 3e-5, "predictive", "end_knot")
     args, cfg = cli.parse_args(["--preset", "paper", "--robot", "armar6", "--num-timesteps", "1000"])
     # the iiwa's alpha and train paths are not applied to another robot
     assert (cfg.robot, cfg.alpha, cfg.num_timesteps, cfg.num_evals) == ("armar6", 1.0, 1000, RECIPES["paper"]["num_evals"])
@@ -430,6 +436,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     (["--gae-lambda", "1.5"], "--gae-lambda: must be in"),
     (["--final-noise-std", "0"], "--final-noise-std: must be a finite number > 0"),
     (["--final-learning-rate", "0"], "--final-learning-rate: must be a finite number > 0"),
+    (["--end-knot-tolerance", "0"], "--end-knot-tolerance: must be a finite number > 0"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
     import train as cli
