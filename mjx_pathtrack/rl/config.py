@@ -159,8 +159,8 @@ class TrainConfig:
 #: for a robot / task; explicit flags still override them
 PRESETS = {
     # + this package's budget for ARMAR-6: 60 regenerated train paths (the 5 committed ones
-    # overfit: 76 % end reached on the test paths after 9.6 M steps) and 24 M steps (~25 min on 2
-    # cores): 96.5 % end reached, 0.114 rad (docs/results.md "ARMAR-6 with the recipe")
+    # overfit: 76 % end reached on the test paths after 9.6 M steps) and 24 M steps (~21 min on 2
+    # cores): 99.0 % end reached, 0.111 rad (docs/results.md "ARMAR-6 with the recipe")
     "armar6": dict(robot="armar6", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
                    duration=20.0, n_next=8, num_train_paths=60, num_timesteps=24_000_000, num_evals=9),
     "armar4": dict(robot="armar4", dataset="random", executor="kinematic", alpha=1.0, action_reward=0.0,
@@ -182,9 +182,9 @@ RECIPES = {
 #: (they win over the robot's preset; another robot, dataset or task does not get them)
 ROBOT_RECIPES = {
     # the papers' alpha 2 and 1000 train paths regenerated from the dataset's recipe (the papers'
-    # count; 5 min) instead of the 200 committed: 99.5 % end reached, 1.153x TOPP-RA, 0.077 /
-    # 0.099 rad after 17 min of training on 2 CPU cores (alpha 3 on the 200: 97.5 %, 1.108x,
-    # 0.090 / 0.111 rad; docs/results.md "Learning recipe")
+    # count; 5 min) instead of the 200 committed: with the stop at the end knot 99.5 % end reached,
+    # 1.129x TOPP-RA, 0.089 / 0.064 rad after 22 min of training on 2 CPU cores (alpha 3 on the
+    # 200, papers' stop: 97.5 %, 1.108x, 0.090 / 0.111 rad; docs/results.md "Learning recipe")
     ("paper", "iiwa", "random"): dict(alpha=2.0, num_train_paths=1000),
 }
 
