@@ -77,26 +77,17 @@ def main(argv=None) -> int:
 
     try:
         source = R.load_policy_source(args.source, deterministic=not args.stochastic)
-        if args.terminate_deviation is not None:
-            if not args.terminate_deviation > 0:
-                raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
-            source = dataclasses.replace(source, config=dataclasses.replace(
-                source.config, terminate_deviation=args.terminate_deviation))
-        if args.end_braking is not None:
-            source = dataclasses.replace(source, config=dataclasses.replace(
-                source.config, end_braking=args.end_braking))
-        if args.end_stop is not None:
-            source = dataclasses.replace(source, config=dataclasses.replace(source.config, end_stop=args.end_stop))
-        if args.end_knot_tolerance is not None:
-            if not (args.end_knot_tolerance > 0 and args.end_knot_tolerance < float("inf")):
-                raise R.EvaluationError(f"--end-knot-tolerance must be a finite number > 0, got {args.end_knot_tolerance}")
-            source = dataclasses.replace(source, config=dataclasses.replace(
-                source.config, end_knot_tolerance=args.end_knot_tolerance))
-        if args.end_tolerance is not None:
-            if not (args.end_tolerance >= 0 and args.end_tolerance < float("inf")):
-                raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
-            source = dataclasses.replace(source, config=dataclasses.replace(
-                source.config, end_tolerance=args.end_tolerance))
+        if args.terminate_deviation is not None and not args.terminate_deviation > 0:
+            raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
+        if args.end_knot_tolerance is not None and not 0 < args.end_knot_tolerance < float("inf"):
+            raise R.EvaluationError(f"--end-knot-tolerance must be a finite number > 0, got {args.end_knot_tolerance}")
+        if args.end_tolerance is not None and not 0 <= args.end_tolerance < float("inf"):
+            raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
+        # the training config's settings that the flags above replace (unset flags keep them)
+        overrides = {name: getattr(args, name) for name in ("terminate_deviation", "end_braking", "end_stop",
+                                                            "end_knot_tolerance", "end_tolerance")}
+        overrides = {name: value for name, value in overrides.items() if value is not None}
+        source = dataclasses.replace(source, config=dataclasses.replace(source.config, **overrides))
         env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)

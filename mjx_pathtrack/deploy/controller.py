@@ -47,6 +47,7 @@ import numpy as np
 
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.deploy.export import MANIFEST_ENV_SETTINGS, env_settings
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
 
 Array = jax.Array
@@ -128,6 +129,8 @@ class OnlineTracker:
                  end_braking: str | None = None, end_stop: str | None = None,
                  end_knot_tolerance: float | None = None):
         manifest = getattr(policy, "manifest", None)
+        settings = dict(knots_frame=knots_frame, end_braking=end_braking, end_stop=end_stop,
+                        end_knot_tolerance=end_knot_tolerance)
         if manifest is not None:
             lim = manifest["limits"]
             none_inf = lambda xs, sign: [sign * np.inf if x is None else x for x in xs]  # noqa: E731
@@ -135,23 +138,18 @@ class OnlineTracker:
                 limits=L.JointLimits(none_inf(lim["pos_min"], -1), none_inf(lim["pos_max"], 1), lim["vel"], lim["acc"],
                                      lim["jerk"], names=manifest.get("joint_names")),
                 dt=manifest["dt"], n_next=manifest["n_next"], max_dis_between_knots=manifest["max_dis_between_knots"],
-                path_joints=manifest["path_joints"], knots_frame=manifest.get("knots_frame", "absolute"),
-                end_braking=manifest.get("end_braking", "at_end"), end_stop=manifest.get("end_stop", "fastest"),
-                end_knot_tolerance=manifest.get("end_knot_tolerance", EnvConfig.end_knot_tolerance))
+                path_joints=manifest["path_joints"])
             given = dict(limits=limits, dt=dt, n_next=n_next, max_dis_between_knots=max_dis_between_knots,
-                         path_joints=path_joints, knots_frame=knots_frame, end_braking=end_braking, end_stop=end_stop,
-                         end_knot_tolerance=end_knot_tolerance)
+                         path_joints=path_joints, **settings)
             clash = [k for k, v in given.items() if v is not None]
             if clash:
                 raise ValueError(f"{', '.join(clash)} come(s) from the export manifest; do not pass them")
             limits, dt, n_next = from_manifest["limits"], from_manifest["dt"], from_manifest["n_next"]
             max_dis_between_knots, path_joints = from_manifest["max_dis_between_knots"], from_manifest["path_joints"]
-            knots_frame, end_braking = from_manifest["knots_frame"], from_manifest["end_braking"]
-            end_stop, end_knot_tolerance = from_manifest["end_stop"], from_manifest["end_knot_tolerance"]
-        knots_frame = "absolute" if knots_frame is None else knots_frame
-        end_braking = "at_end" if end_braking is None else end_braking
-        end_stop = "fastest" if end_stop is None else end_stop
-        end_knot_tolerance = EnvConfig.end_knot_tolerance if end_knot_tolerance is None else float(end_knot_tolerance)
+            settings = env_settings(manifest)
+        else:  # a plain callable: the settings a manifest without them implies, unless given
+            settings = {key: MANIFEST_ENV_SETTINGS[key] if value is None else value for key, value in settings.items()}
+            settings = {key: value for key, value in settings.items() if value is not None}
         if not callable(policy):
             raise ValueError(f"policy must be callable obs -> action, got {type(policy).__name__}")
         missing = [k for k, v in dict(limits=limits, dt=dt, n_next=n_next,
@@ -196,8 +194,7 @@ class OnlineTracker:
         here = np.asarray(p, np.float64)[self.path_joints]
         placeholder = S.make_path(np.stack([here, here + 1e-3]), self.max_knots)
         config = EnvConfig(dt=dt, n_next=int(n_next), substeps=k, deviation_samples=max(k, 1), terminate_deviation=None,
-                           adjustable=True, knots_frame=knots_frame, end_tolerance=float(end_tolerance),
-                           end_braking=end_braking, end_stop=end_stop, end_knot_tolerance=end_knot_tolerance)
+                           adjustable=True, end_tolerance=float(end_tolerance), **settings)
         self.env = PathTrackingEnv(limits, jax.tree.map(lambda x: x[None], placeholder), float(max_dis_between_knots),
                                    config, path_joints=self.path_joints)
         self.observation_size, self.n_joints, self.n_path = self.env.observation_size, n, m
@@ -214,9 +211,8 @@ class OnlineTracker:
         self._has_path = False
         self._time_steps = 0
         # one compilation per configuration (shared by trackers with equal settings)
-        key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), dt, k, int(n_next),
-               float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots, knots_frame,
-               float(end_tolerance), end_braking, end_stop, end_knot_tolerance)
+        key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), config,
+               float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots)
         if key not in _COMPILED:
             _COMPILED[key] = (jax.jit(functools.partial(_step_core, self.env, controller_dt)), jax.jit(_replace_core),
                               jax.jit(self.env.observe))

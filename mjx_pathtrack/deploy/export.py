@@ -33,8 +33,21 @@ REQUIRED_KEYS = {"robot": (str, "a string"), "joint_names": (list, "a list"), "p
                  "limits": (dict, "an object"), "observation_size": (int, "an integer"), "action_size": (int, "an integer")}
 
 
+#: the environment settings (``EnvConfig`` fields) a manifest records, each with the value that a
+#: manifest written before the setting existed implies (None: the setting's default)
+MANIFEST_ENV_SETTINGS = {"knots_frame": "absolute", "end_braking": "at_end", "end_stop": "fastest",
+                         "end_knot_tolerance": None}
+
+
 class ExportError(ValueError):
     """A missing, corrupt or incompatible export; the message says which."""
+
+
+def env_settings(manifest: dict) -> dict:
+    """The environment settings of an export's ``manifest`` (:data:`MANIFEST_ENV_SETTINGS`), older
+    manifests' missing ones filled in; a setting left at its default is left out."""
+    settings = {key: manifest.get(key, implied) for key, implied in MANIFEST_ENV_SETTINGS.items()}
+    return {key: value for key, value in settings.items() if value is not None}
 
 
 def _finite_or_none(values) -> list:
@@ -82,10 +95,7 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "path_joints": [int(i) for i in env.path_joints],
         "dt": float(env.config.dt),
         "n_next": int(env.config.n_next),
-        "knots_frame": env.config.knots_frame,
-        "end_braking": env.config.end_braking,
-        "end_stop": env.config.end_stop,
-        "end_knot_tolerance": float(env.config.end_knot_tolerance),
+        **{key: getattr(env.config, key) for key in MANIFEST_ENV_SETTINGS},
         "max_dis_between_knots": float(env.max_dis),
         "limits": {"pos_min": _finite_or_none(lim.pos_min), "pos_max": _finite_or_none(lim.pos_max),
                    "vel": _finite_or_none(lim.vel), "acc": _finite_or_none(lim.acc),

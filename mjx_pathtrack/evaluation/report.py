@@ -73,9 +73,7 @@ def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
             raise EvaluationError(str(e)) from e
         man = exported.manifest
         config = TrainConfig(robot=man["robot"], dt=float(man["dt"]), n_next=int(man["n_next"]),
-                             knots_frame=man.get("knots_frame", "absolute"),
-                             end_braking=man.get("end_braking", "at_end"), end_stop=man.get("end_stop", "fastest"),
-                             end_knot_tolerance=float(man.get("end_knot_tolerance", TrainConfig.end_knot_tolerance)))
+                             **export.env_settings(man))
         call = exported._exported.call  # pure JAX: jit/vmap friendly
         return PolicySource(lambda obs, key: call(obs), config, float(man["max_dis_between_knots"]), "export", root)
     config_file, params_file = root / "config.json", root / "params.pkl"

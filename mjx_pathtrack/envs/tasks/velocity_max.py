@@ -33,7 +33,7 @@ bang-bang family :func:`reversal_action`);
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +43,7 @@ from brax.envs.base import Env, State
 
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.core import limits as L
-from mjx_pathtrack.envs.episodes import run_episodes
+from mjx_pathtrack.envs.episodes import Policy, run_episodes
 
 Array = jax.Array
 
@@ -315,9 +315,6 @@ def reversal_action(obs: Array, limits: L.JointLimits, factor: float | None = No
 #: (``None``: brake only when the safe range forces it; factors <= 1 act like ``None`` on the
 #: iiwa because the safe range brakes earlier than that)
 REVERSAL_FACTORS = (None, 1.05, 1.1, 1.2, 1.3, 1.4, 1.5, 1.75, 2.0, 2.5)
-
-
-Policy = Callable[[Array, Array], Array]  # (obs [B, obs_size], key) -> action [B, n]
 
 
 def evaluate(env: VelocityMaxEnv, policy: Policy, episodes: int, key: Array) -> dict[str, float]:
