@@ -87,7 +87,7 @@ def main(argv=None) -> int:
         overrides = {name: getattr(args, name) for name in ("terminate_deviation", "end_braking", "end_stop",
                                                             "end_knot_tolerance", "end_tolerance")}
         overrides = {name: value for name, value in overrides.items() if value is not None}
-        source = dataclasses.replace(source, config=dataclasses.replace(source.config, **overrides))
+        source = dataclasses.replace(source, config=source.config.replace(**overrides))
         env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
@@ -102,9 +102,9 @@ def main(argv=None) -> int:
     meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
             "seed": args.seed, "full_paths": args.full_paths,
             "actions": "sampled" if args.stochastic else "deterministic",
-            "terminate_deviation": source.config.terminate_deviation, "end_tolerance": source.config.end_tolerance,
-            "end_braking": source.config.end_braking, "end_stop": source.config.end_stop,
-            "end_knot_tolerance": source.config.end_knot_tolerance,
+            "terminate_deviation": source.config.env.terminate_deviation, "end_tolerance": source.config.env.end_tolerance,
+            "end_braking": source.config.env.end_braking, "end_stop": source.config.env.end_stop,
+            "end_knot_tolerance": source.config.env.end_knot_tolerance,
             "plot_episode": episode}
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
              f"{', sampled actions' if args.stochastic else ''})")

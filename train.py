@@ -9,8 +9,9 @@
     python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)
     python train.py --task balance --legs fixed|controlled   # ARMAR-4 keeping its balance (MJX physics)
 
-A robot or task with a preset (mjx_pathtrack.rl.config.PRESETS, task_presets below) sets the
-papers' values as the defaults of the other flags; flags given explicitly still win.
+A robot or task with a preset (mjx_pathtrack.rl.presets) sets the papers' values as the defaults
+of the other flags; flags given explicitly still win. Every flag is an option of
+mjx_pathtrack.rl.config.TrainConfig by its flat name (--alpha is env.reward.distance).
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -20,46 +21,33 @@ shards the environments over all devices of all processes.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 
 import mjx_pathtrack
 
 
-def task_presets() -> dict[str, dict]:
-    """``--task NAME`` -> TrainConfig defaults of that task (explicit flags still override them)."""
-    from mjx_pathtrack.envs.tasks import ball_on_plate
-
-    return {"ball_on_plate": {**ball_on_plate.PRESET, "out": "runs/ball_on_plate"}}
-
-
-def _optional(kind):
-    """argparse type of an optional option: 'none' is None, anything else ``kind(text)``."""
-    def parse(text: str):
-        return None if text.lower() == "none" else kind(text)
-
-    parse.__name__ = kind.__name__  # argparse names the type in its error messages
-    return parse
-
-
 def parse_args(argv=None):
+    """``(args, TrainConfig)`` of the command line: one flag per flat option of
+    :class:`~mjx_pathtrack.rl.config.TrainConfig` (``--alpha``, ``--num-envs``, ...), whose defaults a
+    robot's or task's preset and then ``--preset`` replace (:mod:`mjx_pathtrack.rl.presets`)."""
     from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES
-    from mjx_pathtrack.rl.config import EXECUTORS, RECIPES, TASKS, TrainConfig, preset, recipe
+    from mjx_pathtrack.rl.config import EXECUTORS, TASKS, TrainConfig
+    from mjx_pathtrack.rl.options import add_flags, from_flags
+    from mjx_pathtrack.rl.presets import RECIPES, preset, recipe
 
-    defaults = TrainConfig()
     choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING,
                "end_stop": END_STOP}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "
-                             "(mjx_pathtrack.rl.config.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
+                             "(mjx_pathtrack.rl.presets.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
                              "1000 train paths, ~25 min on 2 CPU cores)")
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default=None,
-                        help="run directory (config, logs, checkpoints; default runs/<robot>_<dataset> "
-                             "or runs/balance_<legs>), or with --sweep the sweep's output directory")
+                        help="run directory (config, logs, checkpoints; default runs/<robot>_<dataset>, "
+                             "runs/ball_on_plate or runs/balance_<legs>), or with --sweep the sweep's output directory")
     parser.add_argument("--sweep", default=None, metavar="FILE",
                         help="run the grid of a sweep file (YAML, see mjx_pathtrack/sweeps/run.py); the training "
                              "flags below are then ignored: put them in the file's 'base'")
@@ -77,38 +65,23 @@ def parse_args(argv=None):
     parser.add_argument("--coordinator", default=None, help="host:port of process 0 (or JAX_COORDINATOR_ADDRESS)")
     parser.add_argument("--num-processes", type=int, default=None)
     parser.add_argument("--process-id", type=int, default=None)
-    for field in dataclasses.fields(TrainConfig):
-        value = getattr(defaults, field.name)
-        flag = "--" + field.name.replace("_", "-")
-        if isinstance(value, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
-        elif isinstance(value, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=list(value))
-        elif value is None or "None" in str(field.type):  # optional: a number (``float | None``) or a path
-            parser.add_argument(flag, type=_optional(float if "float" in str(field.type) else str), default=value,
-                                help="'none' to unset" if value is not None else None)
-        else:
-            parser.add_argument(flag, type=type(value), default=value, choices=choices.get(field.name))
+    add_flags(parser, TrainConfig, choices)
     known, _ = parser.parse_known_args(argv)
     try:
         parser.set_defaults(**preset(known.robot, known.task))
     except ValueError as e:
         parser.error(str(e))
-    presets = task_presets()
-    if known.task in presets:
-        parser.set_defaults(**presets[known.task])
     # the robot and dataset the robot/task presets and the explicit flags give
     chosen, _ = parser.parse_known_args(argv)
     parser.set_defaults(**recipe(known.preset, chosen.robot, chosen.dataset))
     args = parser.parse_args(argv)
     if args.no_ball_reward:
         args.ball_reward = 0.0
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
     if args.out is None and not args.sweep:  # (a sweep has its own default output directory)
-        args.out = f"runs/balance_{args.legs}" if args.task == "balance" else f"runs/{args.robot}_{args.dataset}"
+        args.out = {"balance": f"runs/balance_{args.legs}", "ball_on_plate": "runs/ball_on_plate"}.get(
+            args.task, f"runs/{args.robot}_{args.dataset}")
         args.out += f"_{args.preset}" if args.preset else ""
-    values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
-    return args, TrainConfig(**values)
+    return args, from_flags(args, TrainConfig)
 
 
 def use_compilation_cache(directory: str | None) -> None:
@@ -127,7 +100,13 @@ def use_compilation_cache(directory: str | None) -> None:
 
 
 def main(argv=None) -> int:
-    args, config = parse_args(argv)  # (imports jax, but its backend starts later)
+    from mjx_pathtrack.rl.options import ConfigError
+
+    try:
+        args, config = parse_args(argv)  # (imports jax, but its backend starts later)
+    except ConfigError as e:
+        print(f"train.py: error: {e}", file=sys.stderr)
+        return 2
     # the CPU flag batched MJX needs; without MJX physics XLA's default CPU fusion emitters train
     # faster (mjx_pathtrack/_xla.py); a user's own flag is kept
     if args.sweep:

@@ -54,8 +54,8 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--steps", type=int, default=10, help="decision steps per timed run")
     args = parser.parse_args()
-    reference = make_env(TrainConfig(robot="iiwa", dataset="random", executor="mjx"), "test")
-    ball = make_env(TrainConfig(**BP.PRESET), "test")
+    reference = make_env(TrainConfig().replace(robot="iiwa", dataset="random", executor="mjx"), "test")
+    ball = make_env(TrainConfig().replace(**BP.PRESET), "test")
     rows = {"iiwa mjx path tracking (reference)": measure(reference, args.batch, args.steps),
             "ball on plate (iiwa_ball, ball simulated)": measure(ball, args.batch, args.steps)}
     print(f"batch {args.batch}, {args.steps} decision steps of 24 physics steps each, CPU ({jax.devices()[0]})")

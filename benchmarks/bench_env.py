@@ -69,7 +69,7 @@ def main() -> None:
     parser.add_argument("--executor", default="kinematic", choices=("kinematic", "mjx"))
     parser.add_argument("--states", type=int, default=8, help="rollout states cycled through (one every 25 steps)")
     args = parser.parse_args()
-    env = make_env(TrainConfig(executor=args.executor), "test")
+    env = make_env(TrainConfig().replace(executor=args.executor), "test")
     cycle = rollout_states(env, args.batch, args.states)
     step = jax.jit(jax.vmap(env.step))
     full = rate(step, cycle, args.batch, args.repeats)
@@ -79,7 +79,7 @@ def main() -> None:
     observe = rate(jax.jit(jax.vmap(env.observe)), tracks, args.batch, args.repeats)
     # the same step with the papers' stop at the end (every joint brakes on its own) instead of
     # the default stop at the end knot, on the same states
-    papers_stop = make_env(TrainConfig(executor=args.executor, end_stop="fastest"), "test")
+    papers_stop = make_env(TrainConfig().replace(executor=args.executor, end_stop="fastest"), "test")
     fastest = rate(jax.jit(jax.vmap(papers_stop.step)), cycle, args.batch, args.repeats)
     print(f"device: {jax.devices()[0].platform}  batch {args.batch}  iiwa random test split  "
           f"{len(cycle)} rollout states")

@@ -31,7 +31,8 @@ import numpy as np
 
 from mjx_pathtrack.rl import batched_ppo as B
 from mjx_pathtrack.rl.config import TrainConfig
-from mjx_pathtrack.rl.training import make_env, ppo_networks
+from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.rl.training import make_env
 from mjx_pathtrack.envs.wrappers import wrap_for_training
 
 
@@ -40,13 +41,9 @@ def brax_train(config: TrainConfig, env) -> float:
 
     t0 = time.perf_counter()
     _, params, _ = ppo.train(
-        environment=env, wrap_env_fn=wrap_for_training, num_timesteps=config.num_timesteps,
-        episode_length=config.env_config().max_episode_steps() + 1, num_envs=config.num_envs,
-        learning_rate=config.learning_rate, entropy_cost=config.entropy_cost, discounting=config.discounting,
-        gae_lambda=config.gae_lambda, clipping_epsilon=config.clipping_epsilon, unroll_length=config.unroll_length,
-        batch_size=config.batch_size, num_minibatches=config.num_minibatches,
-        num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals, run_evals=False,
-        normalize_observations=True, network_factory=ppo_networks(config), seed=config.seed)
+        environment=env, wrap_env_fn=wrap_for_training, episode_length=config.env_config().max_episode_steps() + 1,
+        **dataclasses.replace(config.ppo, final_learning_rate=None).brax_kwargs(), num_evals=config.eval.num_evals,
+        run_evals=False, normalize_observations=True, network_factory=ppo_networks(config.network), seed=config.seed)
     jax.block_until_ready(params)
     return time.perf_counter() - t0
 
@@ -76,9 +73,9 @@ def main() -> None:
     parser.add_argument("--brax-first", action="store_true",
                         help="run the Brax way first (on a shared machine the load drifts: swap the order to see it)")
     args = parser.parse_args()
-    base = TrainConfig(num_envs=args.num_envs, batch_size=args.num_envs, num_minibatches=4, unroll_length=10,
+    base = TrainConfig().replace(num_envs=args.num_envs, batch_size=args.num_envs, num_minibatches=4, unroll_length=10,
                        num_updates_per_batch=2, num_timesteps=args.num_timesteps, num_evals=2)
-    configs = [dataclasses.replace(base, alpha=1.0 + (i % 2), seed=i // 2) for i in range(args.points)]
+    configs = [base.replace(alpha=1.0 + (i % 2), seed=i // 2) for i in range(args.points)]
     env = make_env(base, "train")
     steps = args.points * args.num_timesteps
     print(f"device: {jax.devices()[0].platform}  points {args.points}  num_envs {args.num_envs}  "

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import functools
 import os
 import tempfile
@@ -34,15 +33,16 @@ import jax.numpy as jnp
 from bench_env import rate, rollout_states  # same directory: the timing loop and states of the env benchmark
 from mjx_pathtrack import _xla
 from mjx_pathtrack.rl.config import TrainConfig
-from mjx_pathtrack.rl.training import make_env, ppo_networks, train
+from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.rl.training import make_env, train
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--num-envs", type=int, default=TrainConfig().num_envs)
+    parser.add_argument("--num-envs", type=int, default=TrainConfig().ppo.num_envs)
     parser.add_argument("--num-timesteps", type=int, default=2_000_000)
     parser.add_argument("--num-evals", type=int, default=4, help="progress rows (the first is before training); >= 4")
-    parser.add_argument("--layers", type=int, nargs="+", default=list(TrainConfig().policy_layers),
+    parser.add_argument("--layers", type=int, nargs="+", default=list(TrainConfig().network.policy_layers),
                         help="hidden layers of both the policy and the value network")
     parser.add_argument("--mjx-fusion-fix", action="store_true",
                         help="keep --xla_cpu_use_fusion_emitters=false (what MJX runs need) instead of "
@@ -51,7 +51,7 @@ def main() -> None:
     if not args.mjx_fusion_fix:
         _xla.drop_cpu_fix()
     legacy = _xla.FUSION_FLAG in os.environ.get("XLA_FLAGS", "").split()
-    config = dataclasses.replace(TrainConfig(), num_envs=args.num_envs, num_timesteps=args.num_timesteps,
+    config = TrainConfig().replace(num_envs=args.num_envs, num_timesteps=args.num_timesteps,
                                  num_evals=args.num_evals, eval_episodes=16,
                                  policy_layers=tuple(args.layers), value_layers=tuple(args.layers))
     with tempfile.TemporaryDirectory() as out:
@@ -84,22 +84,22 @@ def sgd_rate(config, env) -> float:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import losses
 
-    net = ppo_networks(config)(env.observation_size, env.action_size)
+    net = ppo_networks(config.network)(env.observation_size, env.action_size)
     key = jax.random.PRNGKey(0)
     params = losses.PPONetworkParams(policy=net.policy_network.init(key), value=net.value_network.init(key))
     norm = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float32))
-    optimizer = optax.adam(config.learning_rate)
-    b = config.batch_size * config.num_minibatches
-    t, o, a = config.unroll_length, env.observation_size, env.action_size
+    optimizer = optax.adam(config.ppo.learning_rate)
+    b = config.ppo.batch_size * config.ppo.num_minibatches
+    t, o, a = config.ppo.unroll_length, env.observation_size, env.action_size
     zeros = jnp.zeros
     data = types.Transition(observation=zeros((b, t, o)), action=zeros((b, t, a)), reward=zeros((b, t)),
                             discount=jnp.ones((b, t)), next_observation=zeros((b, t, o)),
                             extras={"policy_extras": {"log_prob": zeros((b, t)), "raw_action": zeros((b, t, a)),
                                                       "distribution_params": (zeros((b, t, a)), jnp.ones((b, t, a)))},
                                     "state_extras": {"truncation": zeros((b, t))}})
-    loss = functools.partial(losses.compute_ppo_loss, ppo_network=net, entropy_cost=config.entropy_cost,
-                             discounting=config.discounting, reward_scaling=1.0, gae_lambda=config.gae_lambda,
-                             clipping_epsilon=config.clipping_epsilon, normalize_advantage=True)
+    loss = functools.partial(losses.compute_ppo_loss, ppo_network=net, entropy_cost=config.ppo.entropy_cost,
+                             discounting=config.ppo.discounting, reward_scaling=1.0, gae_lambda=config.ppo.gae_lambda,
+                             clipping_epsilon=config.ppo.clipping_epsilon, normalize_advantage=True)
 
     def minibatch(carry, batch):
         p, s, k = carry
@@ -112,15 +112,15 @@ def sgd_rate(config, env) -> float:
         p, s, k = carry
         k, k_perm, k_grad = jax.random.split(k, 3)
         shuffled = jax.tree.map(lambda x: jax.random.permutation(k_perm, x).reshape(
-            (config.num_minibatches, -1) + x.shape[1:]), data)
+            (config.ppo.num_minibatches, -1) + x.shape[1:]), data)
         (p, s, _), _ = jax.lax.scan(minibatch, (p, s, k_grad), shuffled)
         return (p, s, k), None
 
     @jax.jit
     def iteration(params, opt_state, key):
-        return jax.lax.scan(epoch, (params, opt_state, key), None, length=config.num_updates_per_batch)[0]
+        return jax.lax.scan(epoch, (params, opt_state, key), None, length=config.ppo.num_updates_per_batch)[0]
 
-    env_steps = b * config.unroll_length  # per PPO iteration
+    env_steps = b * config.ppo.unroll_length  # per PPO iteration
     return rate(iteration, [(params, optimizer.init(params), key)], env_steps, 3)
 
 

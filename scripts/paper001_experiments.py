@@ -41,8 +41,8 @@ PAPER_TABLE1 = {(240, "safe"): (0.91, 0.0, 1.00, 1.00), (240, "penalty_soft"): (
 
 def plan(budget_scale: float, seed: int, mean_clip: float | None = 1.0) -> list[T.VelocityTrainConfig]:
     def run(hz, mode):
-        return T.VelocityTrainConfig(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale), seed=seed,
-                                     mean_clip=mean_clip)
+        return T.VelocityTrainConfig.from_flat(dict(hz=hz, mode=mode, num_timesteps=int(BUDGET[hz] * budget_scale),
+                                                    seed=seed, mean_clip=mean_clip))
 
     runs = [run(hz, "safe") for hz in V.FREQUENCIES]
     runs += [run(hz, mode) for hz in PENALTY_FREQUENCIES for mode in ("penalty_soft", "penalty_hard")]
@@ -56,11 +56,11 @@ def run_dir(out: Path, config: T.VelocityTrainConfig) -> Path:
 def load_report(directory: Path, config: T.VelocityTrainConfig) -> dict | None:
     """The saved report of ``directory`` if it was made with exactly ``config``."""
     try:
-        saved = json.loads((directory / "config.json").read_text())
+        saved = T.VelocityTrainConfig.from_json((directory / "config.json").read_text())
         report = json.loads((directory / "report.json").read_text())
     except (OSError, ValueError):
         return None
-    return report if saved == json.loads(json.dumps(dataclasses.asdict(config))) else None
+    return report if saved == config else None
 
 
 def tables(results: dict[str, dict]) -> str:
@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="runs/paper001")
     parser.add_argument("--budget-scale", type=float, default=1.0, help="multiply every run's env steps")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--mean-clip", type=T.optional_float, default=T.VelocityTrainConfig().mean_clip,
+    parser.add_argument("--mean-clip", type=T.optional_float, default=T.VelocityTrainConfig().network.mean_clip,
                         help="bound of the policy mean for every run ('none': unbounded)")
     parser.add_argument("--only", nargs="+", default=None, help="run names to do, e.g. safe_10 penalty_soft_240")
     parser.add_argument("--tables-only", action="store_true", help="only rebuild the tables from saved reports")

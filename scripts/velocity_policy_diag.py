@@ -12,7 +12,6 @@ sign(a) = sign(v), the share of steps at rest (|v| <= 0.05 v_max) and the mean |
 from __future__ import annotations
 
 import argparse
-import json
 import pickle
 from pathlib import Path
 
@@ -30,15 +29,14 @@ def main() -> None:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
-    from mjx_pathtrack.rl.training import ppo_networks
+    from mjx_pathtrack.deploy.networks import networks as ppo_networks
 
     run = Path(args.run)
-    saved = json.loads((run / "config.json").read_text())
-    config = T.VelocityTrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+    config = T.VelocityTrainConfig.from_json((run / "config.json").read_text())
     env = T.make_env(config)
     params = pickle.loads((run / "params.pkl").read_bytes())
-    nets = ppo_networks(config)(env.observation_size, env.action_size,
-                                preprocess_observations_fn=running_statistics.normalize)
+    nets = ppo_networks(config.network)(env.observation_size, env.action_size,
+                                        preprocess_observations_fn=running_statistics.normalize)
     inference = ppo_nets.make_inference_fn(nets)(params, deterministic=True)
     act = jax.jit(lambda obs: inference(obs, jax.random.PRNGKey(0))[0])
     step = jax.jit(env.step)

@@ -105,13 +105,13 @@ def orientation_error(quat_wxyz: Array) -> Array:
 class RewardWeights:
     """Weights of the reward terms (defaults: the papers' iiwa random-path network, docs/method.md §2.4).
 
-    ``alpha``: path-length reward; ``max_deviation``/``mean_deviation``: R_d of d_max / d_mean;
+    ``distance``: weight of the path-length reward R_l (the papers' alpha); ``max_deviation``/``mean_deviation``: R_d of d_max / d_mean;
     ``deviation_threshold`` [rad]; ``action``: R_action; ``ball``: R_ball; ``base_pos``,
     ``base_orn``, ``tilt``, ``end_point``: ARMAR-4 balance terms with their scales
     ``base_pos_max`` [m], ``base_orn_max`` [-], ``tilt_max`` [rad], ``end_point_max`` [m].
     """
 
-    alpha: float = 2.0
+    distance: float = 2.0
     max_deviation: float = 0.9
     mean_deviation: float = 0.9
     deviation_threshold: float = 0.25
@@ -131,7 +131,7 @@ def tracking_terms(weights: RewardWeights, length: Array, length_state: Array, l
                    d_max: Array, d_mean: Array, action: Array, close_to_end: Array) -> dict[str, Array]:
     """Named, weighted path-tracking reward terms (sum them for the step reward)."""
     return {
-        "distance": weights.alpha * distance_reward(length, length_state, length_over),
+        "distance": weights.distance * distance_reward(length, length_state, length_over),
         "max_deviation": weights.max_deviation * deviation_reward(d_max, weights.deviation_threshold),
         "mean_deviation": weights.mean_deviation * deviation_reward(d_mean, weights.deviation_threshold),
         "action": weights.action * action_reward(action, close_to_end),

@@ -402,7 +402,7 @@ class PathTrackingEnv(Env):
 
     def critic_features(self, track: TrackState) -> Array:
         """What the return depends on but the observation does not show, for a value network that
-        sees more than the policy (``TrainConfig.privileged_critic``, training only):
+        sees more than the policy (``NetworkConfig.privileged_critic``, training only):
         ``[budget_left, path_left, braking]`` ``[3]`` float32. ``budget_left``: decision steps
         left in the time budget over :meth:`EnvConfig.max_episode_steps` [-] (the stop reward is
         multiplied by them); ``path_left``: arc length from ``s`` to the path end over ``N *

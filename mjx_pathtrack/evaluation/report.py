@@ -2,7 +2,7 @@
 
 ``python evaluate.py RUN_DIR_OR_EXPORT`` is the front end. Steps: :func:`load_policy_source`
 (run dir: ``config.json`` + ``params.pkl`` through the Brax networks of
-:func:`~mjx_pathtrack.rl.training.ppo_networks`; export dir: :func:`~mjx_pathtrack.deploy.export.load_policy`),
+:func:`~mjx_pathtrack.deploy.networks.networks`; export dir: :func:`~mjx_pathtrack.deploy.export.load_policy`),
 :func:`build_env` (dataset split or user path file, every path once by default, sub-paths from a
 fixed seed), :func:`run_evaluation` (batched rollout, metrics, TOPP-RA baseline, computation time),
 :func:`write_outputs` (``metrics.json``, ``episodes.csv``, plots; all written atomically).
@@ -30,7 +30,8 @@ from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 from mjx_pathtrack.fileio import atomic_write_bytes
 from mjx_pathtrack.rl.config import TrainConfig
-from mjx_pathtrack.rl.training import json_safe, ppo_networks
+from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.fileio import json_safe
 
 #: paper 000 Table VI, policy / TOPP-RA duration, iiwa random paths
 PAPER_RATIO = {"iiwa": 1.27}
@@ -72,8 +73,8 @@ def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
         except export.ExportError as e:
             raise EvaluationError(str(e)) from e
         man = exported.manifest
-        config = TrainConfig(robot=man["robot"], dt=float(man["dt"]), n_next=int(man["n_next"]),
-                             **export.env_settings(man))
+        config = TrainConfig.from_flat({"robot": man["robot"], "dt": float(man["dt"]), "n_next": int(man["n_next"]),
+                                        **export.env_settings(man)})
         call = exported._exported.call  # pure JAX: jit/vmap friendly
         return PolicySource(lambda obs, key: call(obs), config, float(man["max_dis_between_knots"]), "export", root)
     config_file, params_file = root / "config.json", root / "params.pkl"
@@ -102,23 +103,23 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic
         from mjx_pathtrack.envs.tasks import humanoid_balance
 
         n = len(humanoid_balance.eval_robot(config).joint_names)
-        obs_size = humanoid_balance.observation_size(config.n_next, config.legs)
+        obs_size = humanoid_balance.observation_size(config.env.n_next, config.balance.legs)
     else:
-        robot = robots.load_robot(config.robot, dt=config.dt)
+        robot = robots.load_robot(config.robot, dt=config.env.dt)
         n = robot.n_joints
         m = int(np.sum(robot.path_mask))
-        obs_size = 3 * n + m * (config.n_next + 1) + 2 + config.n_next
+        obs_size = 3 * n + m * (config.env.n_next + 1) + 2 + config.env.n_next
     if config.task == "ball_on_plate":
         from mjx_pathtrack.envs.tasks.ball_on_plate import observation_size
 
-        obs_size = observation_size(n, config.n_next, sensor=config.ball_reward > 0)
-    nets = ppo_networks(config)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
+        obs_size = observation_size(n, config.env.n_next, sensor=config.ball_on_plate.reward > 0)
+    nets = ppo_networks(config.network)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
     policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params, deterministic)
     try:
         out = jax.eval_shape(policy, jax.ShapeDtypeStruct((1, obs_size), jnp.float32), jax.random.PRNGKey(0))
     except Exception as e:
         raise EvaluationError(f"checkpoint {params_file} does not fit the networks of config.json "
-                              f"(policy layers {config.policy_layers}, observation size {obs_size}): "
+                              f"(policy layers {config.network.policy_layers}, observation size {obs_size}): "
                               f"{type(e).__name__}: {e}") from e
     if out.shape != (1, n):
         raise EvaluationError(f"checkpoint {params_file}: policy output {out.shape}, expected (1, {n})")
@@ -140,13 +141,13 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
     training dataset's observation scale, on ``split`` of the training dataset or on the paths of
     ``paths_file``; ``full_paths`` evaluates whole paths instead of random sub-paths."""
     cfg = source.config
-    robot = robots.load_robot(cfg.robot, dt=cfg.dt)
+    robot = robots.load_robot(cfg.robot, dt=cfg.env.dt)
     if cfg.task == "ball_on_plate":  # whole paths, ball always simulated; episodes end when it falls
-        from mjx_pathtrack.envs.tasks.ball_on_plate import from_train_config
+        from mjx_pathtrack.envs.tasks.ball_on_plate import make_task_env
 
         if paths_file is not None:
             raise EvaluationError("--paths is not supported for the ball_on_plate task (level-plate paths only)")
-        return from_train_config(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
+        return make_task_env(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
     max_dis = source.max_dis
     if max_dis is None:
         max_dis = float(datasets.read_config(cfg.robot, cfg.dataset, cfg.dataset_root)["max_dis_between_knots"])

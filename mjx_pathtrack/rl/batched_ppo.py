@@ -2,8 +2,8 @@
 
 Brax's ``ppo.train`` is a host-side loop and cannot be vmapped; :mod:`mjx_pathtrack.rl.ppo` has the
 same algorithm as a pure function of the learner state, so a whole epoch is vmapped here over
-*members*. Members share every setting except the seed and the reward weights (``alpha``,
-``beta``, ``action_reward``), which enter the environment as traced values
+*members*. Members share every setting except the seed and the reward weights
+(:data:`~mjx_pathtrack.rl.ppo.REWARD_WEIGHTS`: R_l, both R_d terms, R_action), which enter the environment as traced values
 (:func:`~mjx_pathtrack.rl.ppo.with_reward_weights`), so one compilation serves all of them.
 
 Not supported here (use :func:`mjx_pathtrack.rl.training.train`): checkpoints/resume of a
@@ -26,21 +26,23 @@ from mjx_pathtrack.rl.ppo import Learner as TrainState, with_reward_weights  # n
 from mjx_pathtrack.rl.config import TrainConfig
 from mjx_pathtrack.rl.training import make_env
 
-#: TrainConfig fields that may differ between the members of one vmapped program
-MEMBER_FIELDS = ("alpha", "beta", "action_reward", "seed")
+#: TrainConfig options (dotted paths) that may differ between the members of one vmapped program
+MEMBER_FIELDS = tuple(f"env.reward.{k}" for k in ppo.REWARD_WEIGHTS) + ("seed",)
 
 
 class Members(NamedTuple):
-    """Per-member values, each ``[K]``: reward weights and the PPO seed."""
+    """Per-member values, each ``[K]``: reward weights (:data:`~mjx_pathtrack.rl.ppo.REWARD_WEIGHTS`)
+    and the PPO seed."""
 
-    alpha: Any
-    beta: Any
-    action_reward: Any
+    distance: Any
+    max_deviation: Any
+    mean_deviation: Any
+    action: Any
     seed: Any
 
     @classmethod
     def of(cls, configs: Sequence[TrainConfig]) -> "Members":
-        return cls(*(np.asarray([getattr(c, f) for c in configs], np.float32 if f != "seed" else np.int32)
+        return cls(*(np.asarray([c.get(f) for c in configs], np.float32 if f != "seed" else np.int32)
                      for f in MEMBER_FIELDS))
 
 
@@ -48,12 +50,12 @@ def shared_key(config: TrainConfig) -> TrainConfig:
     """``config`` with the member fields set to their defaults: configs with equal keys can be
     trained together by :func:`train_members`."""
     defaults = TrainConfig()
-    return dataclasses.replace(config, **{f: getattr(defaults, f) for f in MEMBER_FIELDS})
+    return config.replace(**{f: defaults.get(f) for f in MEMBER_FIELDS})
 
 
 @dataclasses.dataclass
 class BatchedPPO:
-    """The compiled pieces for one shared config: ``init(seeds [K], weights [K, 3]) -> state [K]``
+    """The compiled pieces for one shared config: ``init(seeds [K], weights [K, 4]) -> state [K]``
     and ``epoch(state, weights, start, end) -> (state, metrics [K])`` (``start``, ``end``: the
     fraction of the budget the epoch covers), plus ``make_policy`` (Brax's
     inference function factory) and the number of env steps per epoch per member."""
@@ -73,11 +75,11 @@ def build(config: TrainConfig, env: PathTrackingEnv | None = None) -> BatchedPPO
     ppo.check_batch(c)
     env = make_env(c, "train") if env is None else env
     core = ppo.build(c, env)
-    epochs = max(c.num_evals - 1, 1)
-    iterations = int(np.ceil(c.num_timesteps / (epochs * core.steps_per_iteration)))
+    epochs = max(c.eval.num_evals - 1, 1)
+    iterations = int(np.ceil(c.ppo.num_timesteps / (epochs * core.steps_per_iteration)))
 
     def init(seed, weights):
-        return core.init(seed, weights, c.num_envs)
+        return core.init(seed, weights, c.ppo.num_envs)
 
     def step(state, weights, fraction):
         return ppo.scheduled_iteration(core, weights, state, fraction)
@@ -93,8 +95,8 @@ def build(config: TrainConfig, env: PathTrackingEnv | None = None) -> BatchedPPO
 
 
 def member_weights(members: Members) -> jax.Array:
-    """``[K, 3]`` reward weights (alpha, beta, action) of the members."""
-    return jnp.stack([jnp.asarray(members.alpha), jnp.asarray(members.beta), jnp.asarray(members.action_reward)], -1)
+    """``[K, 4]`` reward weights (:data:`~mjx_pathtrack.rl.ppo.REWARD_WEIGHTS`) of the members."""
+    return jnp.stack([jnp.asarray(getattr(members, k)) for k in ppo.REWARD_WEIGHTS], -1)
 
 
 def train_members(configs: Sequence[TrainConfig], program: BatchedPPO | None = None,

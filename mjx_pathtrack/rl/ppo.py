@@ -31,55 +31,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack.envs.tracking import PathTrackingEnv
+from mjx_pathtrack.deploy.networks import CRITIC_FEATURES, networks  # noqa: F401  (re-exported)
 from mjx_pathtrack.envs.wrappers import CriticFeatures, wrap_for_training
 
 #: name of the device axis under ``jax.pmap``
 DEVICE_AXIS = "devices"
-
-
-#: number of extra inputs of a privileged value network (``TrainConfig.privileged_critic``;
-#: :meth:`mjx_pathtrack.envs.tracking.PathTrackingEnv.critic_features`)
-CRITIC_FEATURES = len(PathTrackingEnv.CRITIC_FEATURES)
-
-
-def networks(config):
-    """Brax PPO network factory for ``config`` (a ``TrainConfig``): separate policy and value
-    MLPs (``policy_layers``, ``value_layers``, swish), a Gaussian policy whose samples the
-    environment clips to [-1, 1], a learned state-independent log-std starting at
-    ``init_noise_std``, a mean head initialised near zero (``mean_init_scale``; the initial
-    mean action is ~0, the middle of every safe range), optionally bounded (``mean_clip``).
-
-    The factory's ``observation_size`` is the policy's observation. With
-    ``config.privileged_critic`` the value network takes :data:`CRITIC_FEATURES` more inputs
-    (:class:`~mjx_pathtrack.envs.wrappers.CriticFeatures`), the observation statistics cover all of
-    them, and the policy normalises and reads only the first ``observation_size``: the same
-    parameters then act on the plain observation (evaluation, export) and on the extended one
-    (training)."""
-    from brax.training import networks as brax_nets
-    from brax.training.agents.ppo import networks as brax_networks
-
-    layers = dict(policy_hidden_layer_sizes=config.policy_layers, value_hidden_layer_sizes=config.value_layers,
-                  distribution_type="normal", noise_std_type="log", init_noise_std=config.init_noise_std,
-                  mean_clip_scale=config.mean_clip, mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
-                  mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
-                                               distribution="truncated_normal"))
-    if not getattr(config, "privileged_critic", False):  # (the velocity task's config has no such field)
-        return functools.partial(brax_networks.make_ppo_networks, **layers)
-
-    def make(observation_size: int, action_size: int, preprocess_observations_fn):
-        size = int(observation_size)
-
-        def policy_preprocess(obs, stats):  # the running statistics of the first ``size`` inputs
-            return (obs[..., :size] - stats.mean[:size]) / stats.std[:size]
-
-        policy = brax_networks.make_ppo_networks(size, action_size, policy_preprocess, **layers)
-        value = brax_nets.make_value_network(size + CRITIC_FEATURES, preprocess_observations_fn,
-                                             hidden_layer_sizes=config.value_layers, activation=jax.nn.swish)
-        return brax_networks.PPONetworks(policy_network=policy.policy_network, value_network=value,
-                                         parametric_action_distribution=policy.parametric_action_distribution)
-
-    return make
 
 
 class Learner(NamedTuple):
@@ -122,11 +78,13 @@ def with_noise_std(policy_params, std):
     return {**policy_params, "params": inner}
 
 
-def with_reward_weights(env, alpha, beta, action):
-    """A shallow copy of ``env`` whose reward weights are ``alpha`` (R_l), ``beta`` (both R_d
-    terms) and ``action`` (R_action); the values may be JAX tracers (scalars)."""
+def with_reward_weights(env, distance, max_deviation, mean_deviation, action):
+    """A shallow copy of ``env`` whose reward weights (:class:`~mjx_pathtrack.core.reward.RewardWeights`)
+    ``distance`` (R_l), ``max_deviation``, ``mean_deviation`` (the R_d terms) and ``action``
+    (R_action) are replaced; the values may be JAX tracers (scalars)."""
     cfg = env.config
-    reward = dataclasses.replace(cfg.reward, alpha=alpha, max_deviation=beta, mean_deviation=beta, action=action)
+    reward = dataclasses.replace(cfg.reward, distance=distance, max_deviation=max_deviation,
+                                 mean_deviation=mean_deviation, action=action)
     new = copy.copy(env)
     new.config = dataclasses.replace(cfg, reward=reward)
     return new
@@ -138,8 +96,8 @@ class Core:
 
     ``init(seed, weights, n_envs, device) -> Learner`` (``device``: index of this device's share,
     folded into the environment and learner keys); ``iteration(weights, learner, std=None,
-    lr_scale=1.0) -> (learner, metrics)`` one training iteration; ``weights [3]``: the reward
-    weights (alpha, beta, action), possibly traced; ``std``: the policy's std for this iteration
+    lr_scale=1.0) -> (learner, metrics)`` one training iteration; ``weights [4]``: the reward
+    weights (:func:`reward_weights`), possibly traced; ``std``: the policy's std for this iteration
     when it is set by a schedule (:func:`noise_std`) instead of learned; ``lr_scale``: factor on
     the learning rate (:func:`learning_rate_scale`). ``make_policy``: Brax's inference-function factory;
     ``steps_per_iteration``: environment steps of one iteration over all devices."""
@@ -155,7 +113,7 @@ class Core:
 
 def check_batch(config, devices: int = 1) -> None:
     """Raise ``ValueError`` unless the batch settings fit together (Brax's requirements)."""
-    c = config
+    c = config.ppo
     if c.num_envs <= 0 or c.batch_size <= 0 or c.num_minibatches <= 0 or c.unroll_length <= 0:
         raise ValueError("num_envs, batch_size, num_minibatches and unroll_length must be > 0")
     if c.num_envs % devices:
@@ -166,7 +124,7 @@ def check_batch(config, devices: int = 1) -> None:
 
 
 def build(config, env, axis_name: str | None = None) -> Core:
-    """Assemble the PPO pieces for ``config`` (a ``TrainConfig``) on the unwrapped training
+    """Assemble the PPO pieces for ``config`` (a :class:`~mjx_pathtrack.rl.config.TrainConfig`) on the unwrapped training
     environment ``env``. ``axis_name``: the pmap device axis to average gradients and
     observation statistics over (None: a single device)."""
     import optax
@@ -175,11 +133,12 @@ def build(config, env, axis_name: str | None = None) -> Core:
     from brax.training.agents.ppo import losses as ppo_losses
     from brax.training.agents.ppo import networks as brax_ppo_networks
 
-    c = config
-    check_batch(c)
-    episode_length = c.env_config().max_episode_steps() + 1
-    network = networks(c)(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
-    extend = c.privileged_critic
+    check_batch(config)
+    c = config.ppo
+    episode_length = config.env_config().max_episode_steps() + 1
+    network = networks(config.network)(env.observation_size, env.action_size,
+                                       preprocess_observations_fn=running_statistics.normalize)
+    extend = config.network.privileged_critic
     make_policy = brax_ppo_networks.make_inference_fn(network)
     optimizer = optax.adam(learning_rate=c.learning_rate)
     loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=network, entropy_cost=c.entropy_cost,
@@ -188,7 +147,7 @@ def build(config, env, axis_name: str | None = None) -> Core:
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
     def member_env(weights):
-        member = with_reward_weights(env, weights[0], weights[1], weights[2])
+        member = with_reward_weights(env, *(weights[i] for i in range(4)))
         return wrap_for_training(CriticFeatures(member) if extend else member, episode_length)
 
     def init(seed, weights, n_envs: int, device=0) -> Learner:
@@ -260,14 +219,15 @@ def build(config, env, axis_name: str | None = None) -> Core:
             metrics = jax.lax.pmean(metrics, axis_name)
         return Learner(opt_state, params, normalizer, env_state, new_key), metrics
 
-    return Core(c, env, network, make_policy, init, iteration, c.batch_size * c.unroll_length * c.num_minibatches)
+    return Core(config, env, network, make_policy, init, iteration, c.steps_per_iteration)
 
 
 def scheduled_iteration(core: Core, weights, learner: Learner, fraction):
     """One training iteration at ``fraction`` in [0, 1] of the training budget (the position in
     the noise-std and learning-rate schedules; each ignored when not configured). Pure: jit,
     vmap or pmap it."""
-    return core.iteration(weights, learner, noise_std(core.config, fraction), learning_rate_scale(core.config, fraction))
+    return core.iteration(weights, learner, noise_std(core.config.network, fraction),
+                          learning_rate_scale(core.config.ppo, fraction))
 
 
 def summarize_iterations(metrics) -> dict:
@@ -307,6 +267,10 @@ def all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
+#: the reward weights (``EnvConfig.reward`` fields) a training iteration takes as values, in order
+REWARD_WEIGHTS = ("distance", "max_deviation", "mean_deviation", "action")
+
+
 def reward_weights(config) -> np.ndarray:
-    """``[3]`` reward weights (alpha, beta, action) of a ``TrainConfig``."""
-    return np.asarray([config.alpha, config.beta, config.action_reward], np.float32)
+    """``[4]`` reward weights :data:`REWARD_WEIGHTS` of a ``TrainConfig``."""
+    return np.asarray([getattr(config.env.reward, k) for k in REWARD_WEIGHTS], np.float32)

@@ -15,7 +15,6 @@ under ``jax.pmap`` with averaged gradients (data parallel, as Brax does); multi-
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import pickle
@@ -28,44 +27,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack import _jax_compat
-from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.rl import ppo
 from mjx_pathtrack.robots import registry as robots
+from mjx_pathtrack.envs import registry
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
-from mjx_pathtrack.envs.executors import MjxExecutor
 from mjx_pathtrack.deploy.export import export_policy
-from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes
+from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
 from mjx_pathtrack.paths.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
-from mjx_pathtrack.rl.config import EXECUTORS, TASKS, TrainConfig, validate_config
+from mjx_pathtrack.rl.config import TrainConfig, differences, validate_config
 from mjx_pathtrack.rl.checkpoint import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, load_checkpoint, prepare_run_dir, save_checkpoint
 
 _jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
 
 
-def make_env(config: TrainConfig, split: str = "train", root=None) -> PathTrackingEnv:
-    """The environment over one dataset split (``train`` or ``test``) of a registry robot
-    (dataset under ``root``, default ``config.dataset_root``)."""
-    if config.task not in TASKS:
-        raise ValueError(f"unknown task {config.task!r}; known: {', '.join(TASKS)}")
-    if config.task == "balance":
-        from mjx_pathtrack.envs.tasks import humanoid_balance
-
-        return humanoid_balance.make_env(config, split)
-    if config.task == "ball_on_plate":
-        from mjx_pathtrack.envs.tasks.ball_on_plate import from_train_config
-
-        return from_train_config(config, split, evaluation=split == "test")
-    root = config.dataset_root if root is None else root
-    robot = robots.load_robot(config.robot, dt=config.dt)
-    meta = datasets.read_config(config.robot, config.dataset, root)
-    paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
-    path_joints = np.flatnonzero(np.asarray(robot.path_mask))
-    if config.executor not in EXECUTORS:
-        raise ValueError(f"unknown executor {config.executor!r}; known: {', '.join(EXECUTORS)}")
-    executor = MjxExecutor(robot) if config.executor == "mjx" else None
-    return PathTrackingEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), config.env_config(),
-                           path_joints=path_joints, home=robot.q0, executor=executor)
+#: the environment of a config's task over a dataset split (:func:`mjx_pathtrack.envs.registry.make`)
+make_env = registry.make
 
 
 class Progress:
@@ -136,10 +113,6 @@ def truncate_progress(file: FsPath, after_step: int) -> None:
     atomic_write_bytes(file, text.getvalue().encode())
 
 
-#: Brax PPO network factory of a config (kept here under its old name)
-ppo_networks = ppo.networks
-
-
 class TrainingDiverged(RuntimeError):
     """Training produced non-finite parameters or losses; the last good checkpoint is kept."""
 
@@ -163,14 +136,14 @@ def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
     c = config
     devices = jax.local_device_count()
     processes = jax.process_count()
-    if c.num_envs % (devices * processes):
-        devices = 1 if c.num_envs % processes == 0 else devices
+    if c.ppo.num_envs % (devices * processes):
+        devices = 1 if c.ppo.num_envs % processes == 0 else devices
     axis = ppo.DEVICE_AXIS if devices > 1 else None
     core = ppo.build(c, env, axis_name=axis)
     weights = ppo.reward_weights(c)
-    epochs = max(c.num_evals - 1, 1)
-    iterations = max(int(np.ceil(c.num_timesteps / (epochs * core.steps_per_iteration))), 1)
-    envs_per_device = c.num_envs // (devices * processes)
+    epochs = max(c.eval.num_evals - 1, 1)
+    iterations = max(int(np.ceil(c.ppo.num_timesteps / (epochs * core.steps_per_iteration))), 1)
+    envs_per_device = c.ppo.num_envs // (devices * processes)
 
     def step(learner, fraction):
         return ppo.scheduled_iteration(core, weights, learner, fraction)
@@ -235,7 +208,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
     if resume and config_file.exists():
         saved = TrainConfig.from_json(config_file.read_text())
         if saved != config:
-            changed = [f.name for f in dataclasses.fields(TrainConfig) if getattr(saved, f.name) != getattr(config, f.name)]
+            changed = differences(saved, config)
             raise ValueError(f"--resume: config differs from the saved one in {config_file} ({', '.join(changed)})")
     latest = latest_checkpoint(run_dir / "checkpoints") if resume else None
     checkpoint = load_checkpoint(latest[0]) if latest else None
@@ -244,7 +217,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
         if overwrite and held:
             clear_run_dir(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(config_file, (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
+        atomic_write_bytes(config_file, config.to_json().encode())
         return _train(config, run_dir, checkpoint, verbose)
     except BaseException:
         if created and latest_checkpoint(run_dir / "checkpoints") is None:
@@ -262,9 +235,9 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     core = program.core
     steps_per_epoch = program.iterations * core.steps_per_iteration
     total = program.epochs * steps_per_epoch
-    evaluator = make_evaluator(test_env, core.make_policy, config.eval_episodes, deterministic=None)
+    evaluator = make_evaluator(test_env, core.make_policy, config.eval.episodes, deterministic=None)
     eval_key = jax.random.PRNGKey(config.seed + 1)
-    toppra = _eval_baseline(test_env, eval_key, config.eval_episodes)
+    toppra = _eval_baseline(test_env, eval_key, config.eval.episodes)
 
     def evaluation(learner) -> dict[str, float]:
         params = _brax_params(learner, program.devices)
@@ -328,7 +301,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     if verbose:
         print("evaluation after training:  ", _fmt(report["after"]), flush=True)
         print("  sampled actions:          ", _fmt(report["after_sampled"]), flush=True)
-    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.dt).joint_names
+    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.env.dt).joint_names
     write_results(run_dir, core.make_policy, params, test_env, config.robot, joint_names, report)
     return core.make_policy, params, report
 
@@ -372,15 +345,6 @@ def write_results(run_dir: FsPath, make_policy, params, env, robot: str, joint_n
 
 def _unprefix(metrics: dict[str, float], prefix: str) -> dict[str, float]:
     return {k[len(prefix) + 1:]: v for k, v in metrics.items() if k.startswith(prefix + "/")}
-
-
-def json_safe(value):
-    """``value`` with NaN/inf floats replaced by None (strict JSON)."""
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
 
 
 def _fmt(summary: dict[str, float]) -> str:

@@ -4,7 +4,7 @@
     python -m mjx_pathtrack.rl.velocity_max_train optimal                 # optimal vs random, all frequencies
     python -m mjx_pathtrack.rl.velocity_max_train optimal --search        # + the optimality check
 
-Reuses the project's Brax PPO machinery (:func:`mjx_pathtrack.rl.training.ppo_networks`,
+Reuses the project's Brax PPO machinery (:func:`mjx_pathtrack.deploy.networks.networks`,
 :class:`~mjx_pathtrack.rl.training.Progress`, :func:`~mjx_pathtrack.envs.wrappers.wrap_for_training`).
 A run directory gets ``config.json``, ``progress.csv``, ``tensorboard/``, ``params.pkl`` and
 ``report.json`` (trained, random and optimal policy evaluated on the same episodes).
@@ -22,16 +22,22 @@ from typing import Any
 
 from mjx_pathtrack.fileio import atomic_write_bytes  # first: the package sets the CPU XLA flags before JAX starts
 from mjx_pathtrack.envs.tasks import velocity_max as V
+from mjx_pathtrack.rl.config import EvalConfig, NetworkConfig, PPOConfig
+from mjx_pathtrack.rl.options import Options, add_flags, from_flags
 
 import jax
 import numpy as np
 
 
 @dataclasses.dataclass(frozen=True)
-class VelocityTrainConfig:
-    """A training run (saved as ``config.json``). ``horizon_s`` [s] sets the discount per step,
-    ``1 - dt / horizon_s``, so that every frequency looks the same time ahead. The network and
-    PPO sizes are small for a CPU budget (the task is per-joint and nearly myopic).
+class VelocityTrainConfig(Options):
+    """A training run (saved as ``config.json``): the task (``hz``, ``mode``, ``duration``,
+    ``init_spread``), ``horizon_s`` [s], which sets the discount per step, ``1 - dt / horizon_s``
+    (so that every frequency looks the same time ahead; ``ppo.discounting`` is not used), and the
+    shared PPO / network / evaluation blocks of :mod:`mjx_pathtrack.rl.config`, sized for a CPU
+    budget (the task is per-joint and nearly myopic). The network's mean is bounded
+    (``mean_clip`` 1): without it the 120/240 Hz policies drift to means far outside [-1, 1] and
+    stop exploring (docs/results.md "Paper 001 experiments"); ``--mean-clip none`` turns it off.
     ``brax_evals``: run Brax's evaluator ``num_evals`` times (the eval return in
     ``progress.csv``); off by default because its compilation costs as much as a short run on
     a shared CPU -- the final evaluation (``report.json``) is always done."""
@@ -40,29 +46,14 @@ class VelocityTrainConfig:
     mode: str = "safe"
     duration: float = 5.0
     init_spread: float = 0.5
-    num_timesteps: int = 300_000
-    num_envs: int = 64
-    learning_rate: float = 1e-3
-    entropy_cost: float = 1e-3
     horizon_s: float = 1.0
-    gae_lambda: float = 0.95
-    clipping_epsilon: float = 0.2
-    unroll_length: int = 16
-    batch_size: int = 64
-    num_minibatches: int = 4
-    num_updates_per_batch: int = 4
-    num_evals: int = 4
     brax_evals: bool = False
-    eval_episodes: int = 128
-    policy_layers: tuple[int, ...] = (64, 64)
-    value_layers: tuple[int, ...] = (64, 64)
-    init_noise_std: float = 0.5
-    mean_init_scale: float = 0.01
-    #: bound of the policy mean (training.TrainConfig.mean_clip), like the papers' tanh mean head;
-    #: without it the 120/240 Hz policies drift to means far outside [-1, 1] and stop exploring
-    #: (docs/results.md "Paper 001 experiments"); ``--mean-clip none`` turns it off
-    mean_clip: float | None = 1.0
     seed: int = 0
+    ppo: PPOConfig = PPOConfig(num_timesteps=300_000, num_envs=64, learning_rate=1e-3, final_learning_rate=None,
+                               unroll_length=16, batch_size=64, num_minibatches=4, num_updates_per_batch=4)
+    network: NetworkConfig = NetworkConfig(policy_layers=(64, 64), value_layers=(64, 64), final_noise_std=None,
+                                           mean_clip=1.0, privileged_critic=False)
+    eval: EvalConfig = EvalConfig(num_evals=4, episodes=128)
 
     def env_config(self) -> V.VelocityMaxConfig:
         return V.VelocityMaxConfig(hz=self.hz, mode=self.mode, duration=self.duration, init_spread=self.init_spread)
@@ -70,6 +61,18 @@ class VelocityTrainConfig:
     @property
     def discounting(self) -> float:
         return max(0.0, 1.0 - 1.0 / (self.hz * self.horizon_s))
+
+
+#: flat option names (command-line flags, keys of run directories' flat config.json files)
+VelocityTrainConfig.FLAT_NAMES = {
+    **{name: (name,) for name in ("hz", "mode", "duration", "init_spread", "horizon_s", "brax_evals", "seed")},
+    **{f.name: (f"ppo.{f.name}",) for f in dataclasses.fields(PPOConfig)
+       if f.name not in ("discounting", "final_learning_rate")},
+    **{f.name: (f"network.{f.name}",) for f in dataclasses.fields(NetworkConfig)
+       if f.name not in ("final_noise_std", "privileged_critic")},
+    "num_evals": ("eval.num_evals",),
+    "eval_episodes": ("eval.episodes",),
+}
 
 
 def make_env(config: VelocityTrainConfig) -> V.VelocityMaxEnv:
@@ -82,33 +85,31 @@ def train(config: VelocityTrainConfig, run_dir: str | Path, verbose: bool = True
     optimal policies on ``eval_episodes`` episodes and the wall time."""
     from brax.training.agents.ppo import train as ppo
 
-    from mjx_pathtrack.rl.training import Progress, ppo_networks, json_safe
+    from mjx_pathtrack.deploy.networks import networks as ppo_networks
+    from mjx_pathtrack.fileio import json_safe
+    from mjx_pathtrack.rl.training import Progress
     from mjx_pathtrack.envs.wrappers import wrap_for_training
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(run_dir / "config.json", (json.dumps(dataclasses.asdict(config), indent=2) + "\n").encode())
+    atomic_write_bytes(run_dir / "config.json", config.to_json().encode())
     progress_file = run_dir / "progress.csv"
     if progress_file.exists():
         progress_file.unlink()  # a rerun starts a fresh log
     env = make_env(config)
     t0 = time.monotonic()
     make_inference_fn, params, _ = ppo.train(
-        environment=env, wrap_env_fn=wrap_for_training, num_timesteps=config.num_timesteps,
-        episode_length=env.config.episode_steps, num_envs=config.num_envs, learning_rate=config.learning_rate,
-        entropy_cost=config.entropy_cost, discounting=config.discounting, gae_lambda=config.gae_lambda,
-        clipping_epsilon=config.clipping_epsilon, unroll_length=config.unroll_length,
-        batch_size=config.batch_size, num_minibatches=config.num_minibatches,
-        num_updates_per_batch=config.num_updates_per_batch, num_evals=config.num_evals,
-        num_eval_envs=config.num_envs, deterministic_eval=True, normalize_observations=True,
-        run_evals=config.brax_evals,
-        network_factory=ppo_networks(config), seed=config.seed,
-        progress_fn=Progress(run_dir, config.num_timesteps, echo=verbose))
+        environment=env, wrap_env_fn=wrap_for_training, episode_length=env.config.episode_steps,
+        **dataclasses.replace(config.ppo, discounting=config.discounting).brax_kwargs(),
+        num_evals=config.eval.num_evals, num_eval_envs=config.ppo.num_envs, deterministic_eval=True,
+        normalize_observations=True, run_evals=config.brax_evals,
+        network_factory=ppo_networks(config.network), seed=config.seed,
+        progress_fn=Progress(run_dir, config.ppo.num_timesteps, echo=verbose))
     train_s = time.monotonic() - t0
     inference = make_inference_fn(params, deterministic=True)
-    report: dict[str, Any] = {"train_wall_s": train_s, "env_steps": config.num_timesteps,
-                              "episodes_trained": config.num_timesteps // env.config.episode_steps}
-    report.update(evaluate_run(env, lambda obs, k: inference(obs, k)[0], config.eval_episodes,
+    report: dict[str, Any] = {"train_wall_s": train_s, "env_steps": config.ppo.num_timesteps,
+                              "episodes_trained": config.ppo.num_timesteps // env.config.episode_steps}
+    report.update(evaluate_run(env, lambda obs, k: inference(obs, k)[0], config.eval.episodes,
                                jax.random.PRNGKey(config.seed + 1)))
     if verbose:
         print(json.dumps(report, indent=2), flush=True)
@@ -140,26 +141,13 @@ def optional_float(text: str) -> float | None:
 
 
 def parse_train_args(argv) -> tuple[argparse.Namespace, VelocityTrainConfig]:
-    defaults = VelocityTrainConfig()
     parser = argparse.ArgumentParser(prog="python -m mjx_pathtrack.rl.velocity_max_train train",
                                      description="Train PPO on the velocity-maximisation task.")
     parser.add_argument("--out", default=None, help="run directory (default runs/velmax/<mode>_<hz>)")
     parser.add_argument("--quiet", action="store_true")
-    for field in dataclasses.fields(VelocityTrainConfig):
-        value = getattr(defaults, field.name)
-        flag = "--" + field.name.replace("_", "-")
-        if isinstance(value, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=list(value))
-        elif value is None or "None" in str(field.type):  # optional number, "none" = off
-            parser.add_argument(flag, type=optional_float, default=value)
-        elif field.name == "mode":
-            parser.add_argument(flag, choices=V.MODES, default=value)
-        else:
-            parser.add_argument(flag, type=type(value), default=value)
+    add_flags(parser, VelocityTrainConfig, {"mode": V.MODES})
     args = parser.parse_args(argv)
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(VelocityTrainConfig)}
-    values["policy_layers"], values["value_layers"] = tuple(values["policy_layers"]), tuple(values["value_layers"])
-    config = VelocityTrainConfig(**values)
+    config = from_flags(args, VelocityTrainConfig)
     config.env_config()  # validates hz, mode, duration
     return args, config
 

@@ -77,8 +77,11 @@ def swept_fields(summary: dict[str, np.ndarray]) -> list[str]:
 
 
 def _point_config(sweep_dir: FsPath, run_dir: str) -> dict:
+    """The flat options (``--name`` -> value) of a point's ``config.json`` ({} if missing)."""
+    from mjx_pathtrack.rl.config import TrainConfig
+
     file = sweep_dir / run_dir / "config.json"
-    return json.loads(file.read_text()) if file.is_file() else {}
+    return TrainConfig.from_json(file.read_text()).flat() if file.is_file() else {}
 
 
 def combine(summaries: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -5,9 +5,9 @@
 
 A sweep file (YAML) holds::
 
-    base:                 # TrainConfig fields shared by every point (others: TrainConfig defaults)
+    base:                 # TrainConfig options (flat names or dotted paths) shared by every point
       num_timesteps: 200000
-    grid:                 # TrainConfig field -> list of values; the points are the Cartesian product
+    grid:                 # option -> list of values; the points are the Cartesian product
       alpha: [1.0, 2.0]
       beta: [0.5, 0.9]
       seed: [0, 1]
@@ -52,7 +52,7 @@ import numpy as np
 
 from mjx_pathtrack.fileio import append_csv_row, atomic_write, atomic_write_bytes
 from mjx_pathtrack.rl.config import TrainConfig
-from mjx_pathtrack.rl.training import json_safe
+from mjx_pathtrack.fileio import json_safe
 from mjx_pathtrack.sweeps.spec import Point, SweepError, SweepSpec, _label, check_datasets, grid_points, load_spec, steps_mjx_physics
 
 #: written last into a point's run directory: the point is finished
@@ -121,7 +121,7 @@ class Evaluation:
                 # E.evaluate's episodes (same keys), through E.run_episodes with recording on, so that
                 # episode 0's trajectory and the in-step limit ratios come from the same rollout
                 def one(p, w):
-                    member_env = batched_ppo.with_reward_weights(env, w[0], w[1], w[2])
+                    member_env = batched_ppo.with_reward_weights(env, *(w[i] for i in range(4)))
                     reset_keys = jax.random.split(rng, n + 1)
                     state = jax.vmap(member_env.reset)(reset_keys[1:])
                     steps = env.config.max_episode_steps() + 1
@@ -209,9 +209,9 @@ def _make_policy(config: TrainConfig, env):
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as brax_ppo_networks
 
-    from mjx_pathtrack.rl.training import ppo_networks
+    from mjx_pathtrack.deploy.networks import networks as ppo_networks
 
-    nets = ppo_networks(config)(env.observation_size, env.action_size,
+    nets = ppo_networks(config.network)(env.observation_size, env.action_size,
                                 preprocess_observations_fn=running_statistics.normalize)
     return brax_ppo_networks.make_inference_fn(nets)
 
@@ -308,7 +308,7 @@ def _train_vectorized(points: Sequence[Point], out: FsPath, verbose: bool):
     make_policy, params, seconds = batched_ppo.train_members(configs, progress=progress)
     t0 = time.monotonic()
     test_env = make_env(configs[0], "test")
-    joint_names = robots.load_robot(configs[0].robot, dt=configs[0].dt).joint_names
+    joint_names = robots.load_robot(configs[0].robot, dt=configs[0].env.dt).joint_names
     for d, c, p in zip(dirs, configs, params):
         atomic_write_bytes(d / "params.pkl", pickle.dumps(p))
         export_policy(d / "export", make_policy, p, test_env, c.robot, joint_names)

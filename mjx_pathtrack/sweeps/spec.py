@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.rl.config import FLAT_NAMES, TrainConfig
 
 
 SPEC_KEYS = ("base", "grid", "test_datasets", "eval_episodes", "eval_seed", "vectorize", "out")
@@ -46,8 +46,9 @@ class Point:
 
 
 def _coerce(field: str, value: Any, where: str) -> Any:
-    """``value`` as the type of TrainConfig field ``field``; :class:`SweepError` if it is not."""
-    default = getattr(TrainConfig(), field)
+    """``value`` as the type of TrainConfig option ``field`` (a flat name or dotted path);
+    :class:`SweepError` if it is not."""
+    default = TrainConfig().get(field)
     bad = SweepError(f"{where}: {field} = {value!r} is not a valid {type(default).__name__ if default is not None else 'path'}")
     if isinstance(default, bool):
         if not isinstance(value, bool):
@@ -73,10 +74,18 @@ def _coerce(field: str, value: Any, where: str) -> Any:
     raise bad
 
 
+def _known(name: str) -> bool:
+    """Whether ``name`` is a TrainConfig option (flat name or dotted path to a leaf)."""
+    try:
+        return not dataclasses.is_dataclass(TrainConfig().get(name))
+    except (ValueError, AttributeError):
+        return False
+
+
 def parse_spec(data: Any, source: str = "sweep file") -> SweepSpec:
     """Validate a loaded sweep mapping (see the module docstring); :class:`SweepError` naming the
     offending key otherwise."""
-    fields = [f.name for f in dataclasses.fields(TrainConfig)]
+    fields = list(FLAT_NAMES)
     if not isinstance(data, dict):
         raise SweepError(f"{source}: expected a mapping with keys {', '.join(SPEC_KEYS)}, got {type(data).__name__}")
     unknown = sorted(set(data) - set(SPEC_KEYS))
@@ -86,9 +95,10 @@ def parse_spec(data: Any, source: str = "sweep file") -> SweepSpec:
     for name, section in (("base", base), ("grid", grid)):
         if not isinstance(section, dict):
             raise SweepError(f"{source}: '{name}' must be a mapping of TrainConfig fields")
-        wrong = sorted(set(section) - set(fields))
+        wrong = sorted(k for k in section if not _known(k))
         if wrong:
-            raise SweepError(f"{source}: {name}: unknown TrainConfig field(s) {wrong}; known: {', '.join(fields)}")
+            raise SweepError(f"{source}: {name}: unknown TrainConfig field(s) {wrong}; known: {', '.join(fields)} "
+                             f"or a dotted path (env.substeps)")
     both = sorted(set(base) & set(grid))
     if both:
         raise SweepError(f"{source}: field(s) {both} are in both base and grid")
@@ -146,8 +156,8 @@ def grid_points(spec: SweepSpec) -> list[Point]:
     for combo in itertools.product(*(spec.grid[k] for k in keys)):
         values = dict(zip(keys, combo))
         try:
-            config = TrainConfig(**{**spec.base, **values})
-        except TypeError as e:  # pragma: no cover - fields were validated
+            config = TrainConfig.from_flat({**spec.base, **values})
+        except (TypeError, ValueError) as e:  # pragma: no cover - fields were validated
             raise SweepError(str(e)) from None
         name = "_".join(f"{k}={_label(v)}" for k, v in values.items()) or "base"
         points.append(Point(name, values, config))

@@ -17,7 +17,7 @@ from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.deploy.export import ExportError, export_policy, load_policy
 from mjx_pathtrack.rl.config import TrainConfig
-from mjx_pathtrack.rl.training import ppo_networks as ppo_networks_factory
+from mjx_pathtrack.deploy.networks import networks as ppo_networks_factory
 from path_fixtures import random_walk_paths
 
 
@@ -26,7 +26,7 @@ def exported(tmp_path_factory):
     env = PathTrackingEnv(iiwa.joint_limits(0.1), random_walk_paths(n_paths=2), 0.5, EnvConfig())
     # the network family training uses, with a mean head initialised large enough that some
     # actions fall outside [-1, 1] (the export clips them like the environment does)
-    factory = ppo_networks_factory(TrainConfig(policy_layers=(32, 16), value_layers=(8,), mean_init_scale=3.0))
+    factory = ppo_networks_factory(TrainConfig().replace(policy_layers=(32, 16), value_layers=(8,), mean_init_scale=3.0).network)
     nets = factory(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
     make_inference_fn = ppo_networks.make_inference_fn(nets)
     key = jax.random.PRNGKey(0)

@@ -85,7 +85,7 @@ def test_train_preset():
     _, config = train.parse_args(["--task", "ball_on_plate", "--no-ball-reward", "--num-envs", "8"])
     assert (config.task, config.robot, config.dataset, config.executor) == ("ball_on_plate", "iiwa", "ball_balancing",
                                                                             "mjx")
-    assert (config.n_next, config.alpha, config.action_reward, config.duration) == (4, 4.0, 0.0, 6.0)
-    assert config.ball_reward == 0.0 and config.num_envs == 8
+    assert (config.env.n_next, config.env.reward.distance, config.env.reward.action, config.env.duration) == (4, 4.0, 0.0, 6.0)
+    assert config.ball_on_plate.reward == 0.0 and config.ppo.num_envs == 8
     _, config = train.parse_args(["--task", "ball_on_plate"])
-    assert config.ball_reward == 1.0
+    assert config.ball_on_plate.reward == 1.0

@@ -120,10 +120,10 @@ def test_balance_weights_scale_only_the_balance_terms():
     assert (none.base_pos, none.base_orn, none.tilt, none.end_point) == (0, 0, 0, 0)
     assert dataclasses.replace(none, base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2) == H.BALANCE_WEIGHTS
     # the training config's weights (alpha etc. from its flags) get the papers' balance terms
-    cfg = TrainConfig(task="balance", robot="armar4", executor="mjx", alpha=2.0, action_reward=0.0)
+    cfg = TrainConfig().replace(task="balance", robot="armar4", executor="mjx", alpha=2.0, action_reward=0.0)
     w = cfg.env_config().reward
-    assert (w.alpha, w.action, w.base_pos, w.base_orn, w.tilt, w.end_point) == (2.0, 0.0, 0.2, 0.2, 2.0, 0.2)
-    half = dataclasses.replace(cfg, balance_reward=0.5).env_config().reward
+    assert (w.distance, w.action, w.base_pos, w.base_orn, w.tilt, w.end_point) == (2.0, 0.0, 0.2, 0.2, 2.0, 0.2)
+    half = cfg.replace(balance_reward=0.5).env_config().reward
     assert (half.base_pos, half.tilt) == (0.1, 1.0)
-    assert dataclasses.replace(cfg, balance_reward=0.0).env_config().reward.tilt == 0.0
+    assert cfg.replace(balance_reward=0.0).env_config().reward.tilt == 0.0
     assert TrainConfig().env_config().reward.tilt == 0.0  # plain path tracking: no balance terms

@@ -153,12 +153,12 @@ def test_audit_flags_each_limit_kind():
 def test_train_config_and_cli_parsing():
     args, config = T.parse_train_args(["--hz", "240", "--mode", "penalty_hard", "--num-timesteps", "1000",
                                        "--policy-layers", "32", "32"])
-    assert config.hz == 240 and config.mode == "penalty_hard" and config.policy_layers == (32, 32)
+    assert config.hz == 240 and config.mode == "penalty_hard" and config.network.policy_layers == (32, 32)
     assert abs(config.discounting - (1.0 - 1.0 / 240.0)) < 1e-12
     assert config.env_config().episode_steps == 1200
-    assert config.mean_clip == 1.0  # bounded policy mean by default
-    assert T.parse_train_args(["--mean-clip", "none"])[1].mean_clip is None
-    assert T.parse_train_args(["--mean-clip", "2.5"])[1].mean_clip == 2.5
+    assert config.network.mean_clip == 1.0  # bounded policy mean by default
+    assert T.parse_train_args(["--mean-clip", "none"])[1].network.mean_clip is None
+    assert T.parse_train_args(["--mean-clip", "2.5"])[1].network.mean_clip == 2.5
     with pytest.raises(SystemExit):
         T.parse_train_args(["--mean-clip", "wide"])
     with pytest.raises(SystemExit):

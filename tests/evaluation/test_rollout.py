@@ -25,7 +25,8 @@ from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.paths.datasets import DatasetError
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.rl.config import TrainConfig
-from mjx_pathtrack.rl.training import make_env, ppo_networks
+from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.rl.training import make_env
 
 REPO = Path(__file__).resolve().parents[2]
 DT = 0.1
@@ -140,9 +141,9 @@ def _write_run(run: Path, layers=(16,)):
     """A run directory with untrained (random) parameters: config.json + params.pkl."""
     from brax.training.acme import running_statistics, specs
 
-    cfg = TrainConfig(policy_layers=layers, value_layers=(8,), duration=4.0)
+    cfg = TrainConfig().replace(policy_layers=layers, value_layers=(8,), duration=4.0)
     env = make_env(cfg, "test")
-    nets = ppo_networks(cfg)(env.observation_size, env.action_size,
+    nets = ppo_networks(cfg.network)(env.observation_size, env.action_size,
                              preprocess_observations_fn=running_statistics.normalize)
     key = jax.random.PRNGKey(0)
     norm = running_statistics.init_state(specs.Array((env.observation_size,), jnp.dtype("float32")))
@@ -217,7 +218,7 @@ def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run):
     a, b = sampled(obs, jax.random.PRNGKey(0)), sampled(obs, jax.random.PRNGKey(1))
     assert np.all(np.asarray(a) != np.asarray(b))  # fresh noise for every key, episode and joint
     noise = np.asarray(a - mean(obs, jax.random.PRNGKey(0)))
-    assert abs(noise.mean()) < 0.05 and 0.5 * cfg.init_noise_std < noise.std() < 2 * cfg.init_noise_std
+    assert abs(noise.mean()) < 0.05 and 0.5 * cfg.network.init_noise_std < noise.std() < 2 * cfg.network.init_noise_std
 
 
 def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):

@@ -2,7 +2,6 @@
 vmapped group end to end, with every point's own weights, is covered by the sweep fixture in
 tests/sweeps/test_sweep_run.py; a jitted env.step here would cost another 20-100 s of compilation.)"""
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -18,35 +17,35 @@ from mjx_pathtrack.rl.training import make_env
 
 
 def test_traced_reward_weights_reach_every_reward_term_per_member():
-    env = make_env(TrainConfig(duration=4.0), "test")
-    weights = jnp.array([[1.0, 0.5, 0.0], [2.0, 0.9, 0.4], [4.0, 0.1, 1.0]])
+    env = make_env(TrainConfig().replace(duration=4.0), "test")
+    weights = jnp.array([[1.0, 0.5, 0.5, 0.0], [2.0, 0.9, 0.7, 0.4], [4.0, 0.1, 0.1, 1.0]])
     action = jnp.full((env.action_size,), 0.95)
 
     @jax.jit
     def terms(w):  # the env's reward: R.tracking_terms(config.reward, ...) of the member's copy
         def one(w):
-            cfg = B.with_reward_weights(env, w[0], w[1], w[2]).config
+            cfg = B.with_reward_weights(env, *(w[i] for i in range(4))).config
             return R.tracking_terms(cfg.reward, 0.3, 0.5, 7.4, 0.1, 0.05, action, jnp.asarray(False))
         return jax.vmap(one)(w)
 
     out = {k: np.asarray(v) for k, v in terms(weights).items()}
     unit = R.tracking_terms(R.RewardWeights(1.0, 1.0, 1.0, 0.25, 1.0), 0.3, 0.5, 7.4, 0.1, 0.05, action, False)
     w = np.asarray(weights)
-    for term, col in (("distance", 0), ("max_deviation", 1), ("mean_deviation", 1), ("action", 2)):
+    for term, col in (("distance", 0), ("max_deviation", 1), ("mean_deviation", 2), ("action", 3)):
         assert float(unit[term]) > 0
         np.testing.assert_allclose(out[term], w[:, col] * float(unit[term]), rtol=1e-6, err_msg=term)
-    assert env.config.reward.alpha == TrainConfig().alpha  # the original environment is untouched
+    assert env.config.reward.distance == TrainConfig().env.reward.distance  # the original environment is untouched
 
 
 def test_members_and_shared_key():
-    configs = [TrainConfig(alpha=a, seed=s, beta=0.5) for a in (1.0, 3.0) for s in (0, 7)]
+    configs = [TrainConfig().replace(alpha=a, seed=s, beta=0.5) for a in (1.0, 3.0) for s in (0, 7)]
     members = B.Members.of(configs)
-    assert members.alpha.tolist() == [1.0, 1.0, 3.0, 3.0] and members.seed.tolist() == [0, 7, 0, 7]
-    assert members.seed.dtype == np.int32 and members.beta.dtype == np.float32
+    assert members.distance.tolist() == [1.0, 1.0, 3.0, 3.0] and members.seed.tolist() == [0, 7, 0, 7]
+    assert members.seed.dtype == np.int32 and members.max_deviation.dtype == np.float32
     assert len({B.shared_key(c) for c in configs}) == 1
-    assert B.shared_key(dataclasses.replace(configs[0], n_next=5)) != B.shared_key(configs[0])
-    assert B.member_weights(members).shape == (4, 3)
+    assert B.shared_key(configs[0].replace(n_next=5)) != B.shared_key(configs[0])
+    assert B.member_weights(members).shape == (4, 4)
     with pytest.raises(ValueError, match="differ in fields other than"):
-        B.train_members([configs[0], dataclasses.replace(configs[0], num_envs=16)])
+        B.train_members([configs[0], configs[0].replace(num_envs=16)])
     with pytest.raises(ValueError, match="multiple of num_envs"):
-        B.build(TrainConfig(num_envs=48, batch_size=16, num_minibatches=2))
+        B.build(TrainConfig().replace(num_envs=48, batch_size=16, num_minibatches=2))

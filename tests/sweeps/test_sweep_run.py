@@ -78,13 +78,13 @@ def test_each_point_has_a_run_directory(tiny_sweep):
         run = out / r["run_dir"]
         assert r["point"] == point.name == run.name
         assert TrainConfig.from_json((run / "config.json").read_text()) == point.config
-        assert point.config.alpha == float(r["alpha"]) and point.config.beta == float(r["beta"])
+        assert point.config.env.reward.distance == float(r["alpha"]) and point.config.env.reward.max_deviation == float(r["beta"])
         params = pickle.loads((run / "params.pkl").read_bytes())
         assert len(params) == 3  # Brax layout: normalizer, policy, value
         assert (run / "export" / "manifest.json").is_file()
         assert len(read_rows(run / "progress.csv")) >= 1
         record = json.loads((run / sweep.METRICS_FILE).read_text())
-        assert record["values"] == {"alpha": point.config.alpha, "beta": point.config.beta}
+        assert record["values"] == {"alpha": point.config.env.reward.distance, "beta": point.config.env.reward.max_deviation}
         with np.load(run / sweep.EPISODE_FILE) as ep:
             assert ep["p"].shape[1] == 7 and ep["executed"].shape[0] == ep["p"].shape[0] >= 1
 
@@ -196,8 +196,8 @@ def test_grid_points_are_the_cartesian_product_in_file_order():
     points = sweep_spec.grid_points(spec)
     assert [p.name for p in points] == ["n_next=5_alpha=1.0_seed=3", "n_next=5_alpha=2.5_seed=3",
                                         "n_next=9_alpha=1.0_seed=3", "n_next=9_alpha=2.5_seed=3"]
-    assert all(p.config.num_envs == 16 for p in points)
-    assert points[3].config.n_next == 9 and points[3].config.alpha == 2.5 and isinstance(points[3].config.alpha, float)
+    assert all(p.config.ppo.num_envs == 16 for p in points)
+    assert points[3].config.env.n_next == 9 and points[3].config.env.reward.distance == 2.5 and isinstance(points[3].config.env.reward.distance, float)
     # points differing only in alpha/seed form one group (trainable together), n_next splits them
     assert [[p.name for p in g] for g in sweep.groups(points)] == [[p.name for p in points[:2]],
                                                                    [p.name for p in points[2:]]]

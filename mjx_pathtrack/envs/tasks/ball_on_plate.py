@@ -79,7 +79,7 @@ class BallConfig:
 
 def env_config(duration: float = 6.0, terminate_deviation: float | None = 0.25, **overrides) -> EnvConfig:
     """The papers' ball-net settings (see module docstring) as an :class:`EnvConfig`."""
-    weights = R.RewardWeights(alpha=4.0, max_deviation=0.9, mean_deviation=0.9, action=0.0)
+    weights = R.RewardWeights(distance=4.0, max_deviation=0.9, mean_deviation=0.9, action=0.0)
     base = dict(n_next=4, duration=duration, start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
                 terminate_deviation=terminate_deviation, brake_at_end=False, terminate_on_stop=False,
                 deviation_weights=(1.0, 1.0, 1.0, 0.9, 0.8, 0.7, 0.6), reward=weights)
@@ -264,23 +264,35 @@ def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallCo
                           home=robot.q0)
 
 
+@dataclasses.dataclass(frozen=True)
+class TaskConfig:
+    """The task's own training settings (``TrainConfig.ball_on_plate``): ``reward``: weight of
+    R_ball; 0: trained without the ball (neither observed, rewarded nor ending the episode)."""
+
+    reward: float = 1.0
+
+
 #: ``train.py --task ball_on_plate``: the papers' ball-net settings and a CPU-sized PPO budget
+#: (flat option names, :data:`mjx_pathtrack.rl.config.FLAT_NAMES`)
 PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", executor="mjx", n_next=4, alpha=4.0,
               beta=0.9, action_reward=0.0, duration=6.0, terminate_deviation=0.25, ball_reward=1.0,
               num_envs=128, batch_size=128, num_minibatches=4, unroll_length=10, num_updates_per_batch=4,
               num_timesteps=300_000, num_evals=2, eval_episodes=64)
 
 
-def from_train_config(config, split: str = "train", evaluation: bool = False) -> BallOnPlateEnv:
+def make_task_env(config, split: str = "train", root=None, evaluation: bool | None = None) -> BallOnPlateEnv:
     """The task for a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task='ball_on_plate'``).
 
-    ``config.ball_reward > 0``: R_ball with that weight, ball sensor observed, episode ends when
-    the ball falls. ``ball_reward == 0``: the papers' "no balancing reward" net -- trained on the
-    same paths with the ball simulated but neither observed, rewarded nor ending the episode;
-    ``evaluation=True`` still ends episodes when it falls (the reported failure). The train split
-    gets the 4 reflections of every path (docs/paths.md §5)."""
-    with_ball = config.ball_reward > 0
+    ``config.ball_on_plate.reward > 0``: R_ball with that weight, ball sensor observed, episode
+    ends when the ball falls. ``reward == 0``: the papers' "no balancing reward" net -- trained on
+    the same paths with the ball simulated but neither observed, rewarded nor ending the episode;
+    ``evaluation`` (default: the test split) still ends episodes when it falls (the reported
+    failure). The train split gets the 4 reflections of every path (docs/paths.md §5)."""
+    evaluation = split == "test" if evaluation is None else evaluation
+    weight = float(config.ball_on_plate.reward)
+    with_ball = weight > 0
     env_cfg = dataclasses.replace(config.env_config(), start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
                                   brake_at_end=False, terminate_on_stop=False)
-    ball = BallConfig(reward=float(config.ball_reward), sensor=with_ball, terminate=with_ball or evaluation)
-    return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.dt, root=config.dataset_root)
+    ball = BallConfig(reward=weight, sensor=with_ball, terminate=with_ball or evaluation)
+    root = config.dataset_root if root is None else root
+    return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.env.dt, root=root)

@@ -63,7 +63,7 @@ TILT_SCALE = 0.125
 BASE_BLOCKS = (("pelvis_position", 3), ("pelvis_quaternion_wxyz", 4), ("pelvis_tilt", 1))
 BASE_OBS_SIZE = sum(size for _, size in BASE_BLOCKS)
 #: the papers' ARMAR-4 balancing nets (docs/method.md §2.4): alpha 2, no R_action, balance terms
-BALANCE_WEIGHTS = R.RewardWeights(alpha=2.0, max_deviation=0.9, mean_deviation=0.9, action=0.0,
+BALANCE_WEIGHTS = R.RewardWeights(distance=2.0, max_deviation=0.9, mean_deviation=0.9, action=0.0,
                                   base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2)
 BALANCE_TERMS = ("base_pos", "base_orn", "tilt", "end_point")
 
@@ -222,32 +222,49 @@ def balance_weights(scale: float = 1.0, base: R.RewardWeights = BALANCE_WEIGHTS)
     return dataclasses.replace(base, **{k: getattr(BALANCE_WEIGHTS, k) * scale for k in BALANCE_TERMS})
 
 
+@dataclasses.dataclass(frozen=True)
+class TaskConfig:
+    """The balance task's own training settings (``TrainConfig.balance``): ``legs``
+    (:data:`LEGS`: ``"fixed"``, 18 actions, or ``"controlled"``, 30); ``reward``: scale of the
+    papers' balance terms (0: the "no balancing reward" variant)."""
+
+    legs: str = "fixed"
+    reward: float = 1.0
+
+
+#: ``train.py --task balance``: the papers' ARMAR-4 balancing settings (flat option names)
+PRESET = dict(robot="armar4", dataset="random", executor="mjx", alpha=2.0, action_reward=0.0,
+              duration=20.0, n_next=8, balance_reward=1.0)
+
+
 def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis: float | None = None,
-             env_config: EnvConfig | None = None) -> HumanoidBalanceEnv:
+             env_config: EnvConfig | None = None, root=None) -> HumanoidBalanceEnv:
     """The balance environment of a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task="balance"``,
-    ``robot="armar4"``: the dataset of ARMAR-4's upper-body paths; ``legs``; ``balance_reward``).
+    ``robot="armar4"``: the dataset of ARMAR-4's upper-body paths; ``balance``: :class:`TaskConfig`).
     ``paths``/``max_dis``/``env_config`` replace the dataset split, its knot spacing and the
-    config's :class:`EnvConfig` (evaluation on user paths or whole paths)."""
+    config's :class:`EnvConfig` (evaluation on user paths or whole paths); ``root``: the dataset
+    root (default ``config.dataset_root``)."""
     from mjx_pathtrack.paths import datasets
     from mjx_pathtrack.robots import registry as robots
 
+    root = config.dataset_root if root is None else root
     if config.robot != DATASET_ROBOT:
         raise ValueError(f"the balance task tracks paths of robot {DATASET_ROBOT!r} (ARMAR-4's upper body), "
                          f"got robot {config.robot!r}")
     if config.executor != "mjx":
         raise ValueError(f"the balance task needs the mjx executor (floating base physics), got {config.executor!r}")
-    robot = robots.load_robot(ROBOT, dt=config.dt)
+    robot = robots.load_robot(ROBOT, dt=config.env.dt)
     if max_dis is None:
-        meta = datasets.read_config(config.robot, config.dataset, config.dataset_root)
+        meta = datasets.read_config(config.robot, config.dataset, root)
         upper = [n for n, m in zip(robot.joint_names, robot.path_mask) if m]
         if list(meta.get("joint_names", upper)) != upper:
             raise ValueError(f"dataset {config.robot}/{config.dataset} joints {meta['joint_names']} differ from "
                              f"ARMAR-4's upper body {upper}")
         max_dis = float(meta["max_dis_between_knots"])
     if paths is None:
-        paths = datasets.load_paths(config.robot, config.dataset, split, root=config.dataset_root)
+        paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
     env_config = config.env_config() if env_config is None else env_config
-    return HumanoidBalanceEnv(robot, paths, max_dis, env_config, BalanceOptions(legs=config.legs))
+    return HumanoidBalanceEnv(robot, paths, max_dis, env_config, BalanceOptions(legs=config.balance.legs))
 
 
 def eval_robot(config):
@@ -255,4 +272,4 @@ def eval_robot(config):
     ``armar4`` (fixed legs: the same 18 joints on a static base) or ``armar4_legs``."""
     from mjx_pathtrack.robots import registry as robots
 
-    return robots.load_robot(DATASET_ROBOT if config.legs == "fixed" else ROBOT, dt=config.dt)
+    return robots.load_robot(DATASET_ROBOT if config.balance.legs == "fixed" else ROBOT, dt=config.env.dt)

@@ -1,0 +1,84 @@
+"""The networks a policy runs on: the papers' separate policy and value MLPs (Brax PPO networks)
+and their settings, :class:`NetworkConfig`. Training (:mod:`mjx_pathtrack.rl.ppo`) builds them to
+learn the parameters; evaluation and export rebuild them to run the learned parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+
+from mjx_pathtrack.envs.tracking import PathTrackingEnv
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig:
+    """The papers' separate policy and value MLPs (swish) and the policy's Gaussian noise.
+
+    ``init_noise_std``: the std at the start; ``final_noise_std``: None: the log-std is learned
+    (Brax); a number: the std is set by a schedule, geometric from ``init_noise_std`` to this value
+    at the end of training, so that the sampled policy PPO optimises converges to the
+    deterministic one. ``mean_init_scale``: scale of the mean head's initial weights (the initial
+    mean action is ~0, the middle of every safe range). ``mean_clip``: bound of the policy mean,
+    ``mean_clip * x / (1 + |x|)`` (Brax's ``mean_clip_scale``), like the papers' tanh mean head
+    (docs/training.md §1); None: unbounded. ``privileged_critic``: the value network also sees
+    what the return depends on but the policy's observation does not show: the steps left in the
+    time budget, the path length left, braking (:meth:`PathTrackingEnv.critic_features`; training
+    only: the policy and its export are unchanged). The stop reward is multiplied by the steps
+    left in the budget, so a critic that sees them learns far cleaner advantages (docs/results.md
+    "Learning recipe"; off: the papers' value network)."""
+
+    policy_layers: tuple[int, ...] = (256, 128)
+    value_layers: tuple[int, ...] = (256, 128)
+    init_noise_std: float = 0.5
+    final_noise_std: float | None = 0.05
+    mean_init_scale: float = 0.01
+    mean_clip: float | None = None
+    privileged_critic: bool = True
+
+
+
+#: number of extra inputs of a privileged value network (``NetworkConfig.privileged_critic``;
+#: :meth:`mjx_pathtrack.envs.tracking.PathTrackingEnv.critic_features`)
+CRITIC_FEATURES = len(PathTrackingEnv.CRITIC_FEATURES)
+
+
+def networks(config):
+    """Brax PPO network factory for ``config`` (a :class:`~mjx_pathtrack.rl.config.NetworkConfig`): separate policy and value
+    MLPs (``policy_layers``, ``value_layers``, swish), a Gaussian policy whose samples the
+    environment clips to [-1, 1], a learned state-independent log-std starting at
+    ``init_noise_std``, a mean head initialised near zero (``mean_init_scale``; the initial
+    mean action is ~0, the middle of every safe range), optionally bounded (``mean_clip``).
+
+    The factory's ``observation_size`` is the policy's observation. With
+    ``config.privileged_critic`` the value network takes :data:`CRITIC_FEATURES` more inputs
+    (:class:`~mjx_pathtrack.envs.wrappers.CriticFeatures`), the observation statistics cover all of
+    them, and the policy normalises and reads only the first ``observation_size``: the same
+    parameters then act on the plain observation (evaluation, export) and on the extended one
+    (training)."""
+    from brax.training import networks as brax_nets
+    from brax.training.agents.ppo import networks as brax_networks
+
+    layers = dict(policy_hidden_layer_sizes=config.policy_layers, value_hidden_layer_sizes=config.value_layers,
+                  distribution_type="normal", noise_std_type="log", init_noise_std=config.init_noise_std,
+                  mean_clip_scale=config.mean_clip, mean_kernel_init_fn=jax.nn.initializers.variance_scaling,
+                  mean_kernel_init_kwargs=dict(scale=config.mean_init_scale ** 2, mode="fan_in",
+                                               distribution="truncated_normal"))
+    if not config.privileged_critic:
+        return functools.partial(brax_networks.make_ppo_networks, **layers)
+
+    def make(observation_size: int, action_size: int, preprocess_observations_fn):
+        size = int(observation_size)
+
+        def policy_preprocess(obs, stats):  # the running statistics of the first ``size`` inputs
+            return (obs[..., :size] - stats.mean[:size]) / stats.std[:size]
+
+        policy = brax_networks.make_ppo_networks(size, action_size, policy_preprocess, **layers)
+        value = brax_nets.make_value_network(size + CRITIC_FEATURES, preprocess_observations_fn,
+                                             hidden_layer_sizes=config.value_layers, activation=jax.nn.swish)
+        return brax_networks.PPONetworks(policy_network=policy.policy_network, value_network=value,
+                                         parametric_action_distribution=policy.parametric_action_distribution)
+
+    return make

@@ -1,0 +1,60 @@
+"""The environments of a training configuration by task name, all made the same way:
+``make(config, split, root)`` (``config``: a :class:`~mjx_pathtrack.rl.config.TrainConfig`).
+
+To add a task: write its environment in :mod:`mjx_pathtrack.envs.tasks` with a factory of this
+signature, its ``TaskConfig`` and ``PRESET``, and register the factory in :data:`FACTORIES`
+(docs/extending.md).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from mjx_pathtrack.envs.executors import MjxExecutor
+from mjx_pathtrack.envs.tracking import PathTrackingEnv
+
+#: executors of the plain tracking task (``TrainConfig.executor``)
+EXECUTORS = ("kinematic", "mjx")
+
+
+def make_tracking(config, split: str = "train", root=None) -> PathTrackingEnv:
+    """Path tracking over one dataset split of a registry robot (``executor`` kinematic or MJX)."""
+    from mjx_pathtrack.paths import datasets
+    from mjx_pathtrack.robots import registry as robots
+
+    root = config.dataset_root if root is None else root
+    if config.executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {config.executor!r}; known: {', '.join(EXECUTORS)}")
+    robot = robots.load_robot(config.robot, dt=config.env.dt)
+    meta = datasets.read_config(config.robot, config.dataset, root)
+    paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
+    path_joints = np.flatnonzero(np.asarray(robot.path_mask))
+    executor = MjxExecutor(robot) if config.executor == "mjx" else None
+    return PathTrackingEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), config.env_config(),
+                           path_joints=path_joints, home=robot.q0, executor=executor)
+
+
+def _ball_on_plate(config, split: str = "train", root=None):
+    from mjx_pathtrack.envs.tasks import ball_on_plate
+
+    return ball_on_plate.make_task_env(config, split, root)
+
+
+def _balance(config, split: str = "train", root=None):
+    from mjx_pathtrack.envs.tasks import humanoid_balance
+
+    return humanoid_balance.make_env(config, split, root=root)
+
+
+#: task name -> ``factory(config, split, root) -> env`` (``TrainConfig.task``)
+FACTORIES: dict[str, Callable] = {"tracking": make_tracking, "ball_on_plate": _ball_on_plate, "balance": _balance}
+
+
+def make(config, split: str = "train", root=None) -> PathTrackingEnv:
+    """The environment of ``config.task`` over the dataset split ``split`` (``train`` or ``test``;
+    dataset under ``root``, default ``config.dataset_root``)."""
+    if config.task not in FACTORIES:
+        raise ValueError(f"unknown task {config.task!r}; known: {', '.join(FACTORIES)}")
+    return FACTORIES[config.task](config, split, root)
