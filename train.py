@@ -9,9 +9,9 @@
     python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)
     python train.py --task balance --legs fixed|controlled   # ARMAR-4 keeping its balance (MJX physics)
 
-A robot or task with a preset (mjx_pathtrack.rl.presets) sets the papers' values as the defaults
+A robot or task with a preset (mjx_pathtrack.config.presets) sets the papers' values as the defaults
 of the other flags; flags given explicitly still win. Every flag is an option of
-mjx_pathtrack.rl.config.TrainConfig by its flat name (--alpha is env.reward.distance).
+mjx_pathtrack.config.run.TrainConfig by its flat name (--alpha is env.reward.distance).
 
 Multi-host: start the same command on every host with --distributed --coordinator host0:1234
 --num-processes N --process-id i (or under SLURM / Open MPI, which JAX detects); Brax PPO then
@@ -29,19 +29,19 @@ import mjx_pathtrack
 
 def parse_args(argv=None):
     """``(args, TrainConfig)`` of the command line: one flag per flat option of
-    :class:`~mjx_pathtrack.rl.config.TrainConfig` (``--alpha``, ``--num-envs``, ...), whose defaults a
-    robot's or task's preset and then ``--preset`` replace (:mod:`mjx_pathtrack.rl.presets`)."""
+    :class:`~mjx_pathtrack.config.run.TrainConfig` (``--alpha``, ``--num-envs``, ...), whose defaults a
+    robot's or task's preset and then ``--preset`` replace (:mod:`mjx_pathtrack.config.presets`)."""
     from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES
-    from mjx_pathtrack.rl.config import EXECUTORS, TASKS, TrainConfig
-    from mjx_pathtrack.rl.options import add_flags, from_flags
-    from mjx_pathtrack.rl.presets import RECIPES, preset, recipe
+    from mjx_pathtrack.config.run import EXECUTORS, TASKS, TrainConfig
+    from mjx_pathtrack.config.options import add_flags, from_flags
+    from mjx_pathtrack.config.presets import RECIPES, preset, recipe
 
     choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING,
                "end_stop": END_STOP}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "
-                             "(mjx_pathtrack.rl.presets.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
+                             "(mjx_pathtrack.config.presets.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
                              "1000 train paths, ~25 min on 2 CPU cores)")
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
@@ -100,7 +100,7 @@ def use_compilation_cache(directory: str | None) -> None:
 
 
 def main(argv=None) -> int:
-    from mjx_pathtrack.rl.options import ConfigError
+    from mjx_pathtrack.config.options import ConfigError
 
     try:
         args, config = parse_args(argv)  # (imports jax, but its backend starts later)
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     from mjx_pathtrack.paths.datasets import DatasetError
     from mjx_pathtrack.rl.checkpoint import RunDirError
-    from mjx_pathtrack.rl.config import ConfigError
+    from mjx_pathtrack.config.run import ConfigError
     from mjx_pathtrack.rl.training import TrainingDiverged, train
 
     print(f"devices: {jax.devices()}", flush=True)

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from mjx_pathtrack.envs.tasks import ball_on_plate as BP
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.rl.training import make_env
 
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from mjx_pathtrack.core import limits as L
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.rl.training import make_env
 from mjx_pathtrack.envs.wrappers import wrap_for_training
 

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack.rl import batched_ppo as B
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import networks as ppo_networks
 from mjx_pathtrack.rl.training import make_env
 from mjx_pathtrack.envs.wrappers import wrap_for_training

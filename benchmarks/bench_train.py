@@ -32,7 +32,7 @@ import jax.numpy as jnp
 
 from bench_env import rate, rollout_states  # same directory: the timing loop and states of the env benchmark
 from mjx_pathtrack import _xla
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import networks as ppo_networks
 from mjx_pathtrack.rl.training import make_env, train
 

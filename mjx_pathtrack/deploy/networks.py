@@ -46,7 +46,7 @@ CRITIC_FEATURES = len(PathTrackingEnv.CRITIC_FEATURES)
 
 
 def networks(config):
-    """Brax PPO network factory for ``config`` (a :class:`~mjx_pathtrack.rl.config.NetworkConfig`): separate policy and value
+    """Brax PPO network factory for ``config`` (a :class:`~mjx_pathtrack.config.run.NetworkConfig`): separate policy and value
     MLPs (``policy_layers``, ``value_layers``, swish), a Gaussian policy whose samples the
     environment clips to [-1, 1], a learned state-independent log-std starting at
     ``init_noise_std``, a mean head initialised near zero (``mean_init_scale``; the initial

@@ -1,5 +1,5 @@
 """The environments of a training configuration by task name, all made the same way:
-``make(config, split, root)`` (``config``: a :class:`~mjx_pathtrack.rl.config.TrainConfig`).
+``make(config, split, root)`` (``config``: a :class:`~mjx_pathtrack.config.run.TrainConfig`).
 
 To add a task: write its environment in :mod:`mjx_pathtrack.envs.tasks` with a factory of this
 signature, its ``TaskConfig`` and ``PRESET``, and register the factory in :data:`FACTORIES`

@@ -29,7 +29,7 @@ from mjx_pathtrack.evaluation import rollout as E
 from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 from mjx_pathtrack.fileio import atomic_write_bytes
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import networks as ppo_networks
 from mjx_pathtrack.fileio import json_safe
 

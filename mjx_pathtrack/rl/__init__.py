@@ -1,6 +1,6 @@
-"""Reinforcement learning: the training configuration, the PPO learner, the training loop.
+"""Reinforcement learning: the PPO learner and the training loop (the configuration of a run is
+:mod:`mjx_pathtrack.config`).
 
-- :mod:`~mjx_pathtrack.rl.config`: ``TrainConfig``, presets and recipes, validation, ``make_env``;
 - :mod:`~mjx_pathtrack.rl.training`: ``train`` (run directory, progress, evaluation, export);
 - :mod:`~mjx_pathtrack.rl.checkpoint`: exact checkpoints and run directories (resume);
 - :mod:`~mjx_pathtrack.rl.ppo`: Brax PPO as a pure function of the learner state;

@@ -23,7 +23,7 @@ import numpy as np
 from mjx_pathtrack.rl import ppo
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 from mjx_pathtrack.rl.ppo import Learner as TrainState, with_reward_weights  # noqa: F401  (re-exported)
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.rl.training import make_env
 
 #: TrainConfig options (dotted paths) that may differ between the members of one vmapped program

@@ -124,7 +124,7 @@ def check_batch(config, devices: int = 1) -> None:
 
 
 def build(config, env, axis_name: str | None = None) -> Core:
-    """Assemble the PPO pieces for ``config`` (a :class:`~mjx_pathtrack.rl.config.TrainConfig`) on the unwrapped training
+    """Assemble the PPO pieces for ``config`` (a :class:`~mjx_pathtrack.config.run.TrainConfig`) on the unwrapped training
     environment ``env``. ``axis_name``: the pmap device axis to average gradients and
     observation statistics over (None: a single device)."""
     import optax

@@ -22,8 +22,8 @@ from typing import Any
 
 from mjx_pathtrack.fileio import atomic_write_bytes  # first: the package sets the CPU XLA flags before JAX starts
 from mjx_pathtrack.envs.tasks import velocity_max as V
-from mjx_pathtrack.rl.config import EvalConfig, NetworkConfig, PPOConfig
-from mjx_pathtrack.rl.options import Options, add_flags, from_flags
+from mjx_pathtrack.config.run import EvalConfig, NetworkConfig, PPOConfig
+from mjx_pathtrack.config.options import Options, add_flags, from_flags
 
 import jax
 import numpy as np
@@ -34,7 +34,7 @@ class VelocityTrainConfig(Options):
     """A training run (saved as ``config.json``): the task (``hz``, ``mode``, ``duration``,
     ``init_spread``), ``horizon_s`` [s], which sets the discount per step, ``1 - dt / horizon_s``
     (so that every frequency looks the same time ahead; ``ppo.discounting`` is not used), and the
-    shared PPO / network / evaluation blocks of :mod:`mjx_pathtrack.rl.config`, sized for a CPU
+    shared PPO / network / evaluation blocks of :mod:`mjx_pathtrack.config.run`, sized for a CPU
     budget (the task is per-joint and nearly myopic). The network's mean is bounded
     (``mean_clip`` 1): without it the 120/240 Hz policies drift to means far outside [-1, 1] and
     stop exploring (docs/results.md "Paper 001 experiments"); ``--mean-clip none`` turns it off.

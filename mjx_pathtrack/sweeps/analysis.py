@@ -78,7 +78,7 @@ def swept_fields(summary: dict[str, np.ndarray]) -> list[str]:
 
 def _point_config(sweep_dir: FsPath, run_dir: str) -> dict:
     """The flat options (``--name`` -> value) of a point's ``config.json`` ({} if missing)."""
-    from mjx_pathtrack.rl.config import TrainConfig
+    from mjx_pathtrack.config.run import TrainConfig
 
     file = sweep_dir / run_dir / "config.json"
     return TrainConfig.from_json(file.read_text()).flat() if file.is_file() else {}

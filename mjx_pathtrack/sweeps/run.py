@@ -51,7 +51,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from mjx_pathtrack.fileio import append_csv_row, atomic_write, atomic_write_bytes
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.fileio import json_safe
 from mjx_pathtrack.sweeps.spec import Point, SweepError, SweepSpec, _label, check_datasets, grid_points, load_spec, steps_mjx_physics
 

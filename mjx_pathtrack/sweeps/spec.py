@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from mjx_pathtrack.rl.config import FLAT_NAMES, TrainConfig
+from mjx_pathtrack.config.run import FLAT_NAMES, TrainConfig
 
 
 SPEC_KEYS = ("base", "grid", "test_datasets", "eval_episodes", "eval_seed", "vectorize", "out")
@@ -25,7 +25,7 @@ class SweepError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class SweepSpec:
     """A parsed sweep file: ``base`` and ``grid`` (field -> tuple of values) over
-    :class:`~mjx_pathtrack.rl.config.TrainConfig`, extra test datasets and evaluation settings."""
+    :class:`~mjx_pathtrack.config.run.TrainConfig`, extra test datasets and evaluation settings."""
 
     base: dict
     grid: dict

@@ -460,7 +460,7 @@ def test_readme_deploy_example_runs_as_written_on_the_longest_committed_test_pat
 
     from mjx_pathtrack.paths import datasets
     from mjx_pathtrack.deploy.export import export_policy
-    from mjx_pathtrack.rl.config import TrainConfig
+    from mjx_pathtrack.config.run import TrainConfig
     from mjx_pathtrack.rl.training import make_env
 
     env = make_env(TrainConfig(), "test")

@@ -16,7 +16,7 @@ from brax.training.agents.ppo import networks as ppo_networks
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.deploy.export import ExportError, export_policy, load_policy
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import networks as ppo_networks_factory
 from path_fixtures import random_walk_paths
 

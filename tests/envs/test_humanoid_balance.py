@@ -15,7 +15,7 @@ from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs.tracking import EnvConfig
 from mjx_pathtrack.robots.registry import load_robot
 from mjx_pathtrack.envs.tasks import humanoid_balance as H
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 
 STEPS = 12  # decision steps of the rollout (1.2 s)
 PUSH = 2.5  # roll rate [rad/s] given to the pelvis of the pushed robot

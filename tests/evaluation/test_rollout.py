@@ -24,7 +24,7 @@ from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.paths.datasets import DatasetError
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import networks as ppo_networks
 from mjx_pathtrack.rl.training import make_env
 

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 
 from mjx_pathtrack.rl import batched_ppo as B
 from mjx_pathtrack.core import reward as R
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.rl.training import make_env
 
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from mjx_pathtrack.deploy.export import load_policy
 from mjx_pathtrack.rl import checkpoint
 from mjx_pathtrack.rl.checkpoint import latest_checkpoint
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.fileio import json_safe
 from mjx_pathtrack.rl.training import make_env, train
 
@@ -155,7 +155,7 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
 def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
     sys.path.insert(0, str(REPO))
     import train as cli
-    from mjx_pathtrack.rl.presets import RECIPES, recipe
+    from mjx_pathtrack.config.presets import RECIPES, recipe
 
     args, cfg = cli.parse_args(["--preset", "paper"])
     assert args.out == "runs/iiwa_random_paper"
@@ -369,7 +369,7 @@ def test_a_run_directory_holding_a_run_is_refused_and_left_untouched(tiny_run, t
     with pytest.raises(RunDirError, match="exclude each other"):
         train(config, run, resume=True, overwrite=True, verbose=False)
     # a failing option is refused before anything is written, even with --resume
-    from mjx_pathtrack.rl.config import ConfigError
+    from mjx_pathtrack.config.run import ConfigError
 
     with pytest.raises(ConfigError, match="--batch-size"):
         train(TrainConfig.from_flat({**TINY, "num_envs": 15, "batch_size": 16}), run, resume=True, verbose=False)
@@ -440,7 +440,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
     import train as cli
-    from mjx_pathtrack.rl.config import ConfigError, validate_config
+    from mjx_pathtrack.config.run import ConfigError, validate_config
 
     with pytest.raises(ConfigError, match=message) as e:  # (a block's own check fails already in parse_args)
         validate_config(cli.parse_args(argv)[1])

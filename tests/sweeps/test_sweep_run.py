@@ -16,7 +16,7 @@ import mjx_pathtrack  # noqa: F401
 from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.sweeps import run as sweep
 from mjx_pathtrack.sweeps import spec as sweep_spec
-from mjx_pathtrack.rl.config import TrainConfig
+from mjx_pathtrack.config.run import TrainConfig
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = dict(num_envs=8, num_timesteps=640, unroll_length=5, batch_size=8, num_minibatches=2,

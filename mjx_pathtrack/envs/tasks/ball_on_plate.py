@@ -273,7 +273,7 @@ class TaskConfig:
 
 
 #: ``train.py --task ball_on_plate``: the papers' ball-net settings and a CPU-sized PPO budget
-#: (flat option names, :data:`mjx_pathtrack.rl.config.FLAT_NAMES`)
+#: (flat option names, :data:`mjx_pathtrack.config.run.FLAT_NAMES`)
 PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", executor="mjx", n_next=4, alpha=4.0,
               beta=0.9, action_reward=0.0, duration=6.0, terminate_deviation=0.25, ball_reward=1.0,
               num_envs=128, batch_size=128, num_minibatches=4, unroll_length=10, num_updates_per_batch=4,
@@ -281,7 +281,7 @@ PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", exec
 
 
 def make_task_env(config, split: str = "train", root=None, evaluation: bool | None = None) -> BallOnPlateEnv:
-    """The task for a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task='ball_on_plate'``).
+    """The task for a :class:`~mjx_pathtrack.config.run.TrainConfig` (``task='ball_on_plate'``).
 
     ``config.ball_on_plate.reward > 0``: R_ball with that weight, ball sensor observed, episode
     ends when the ball falls. ``reward == 0``: the papers' "no balancing reward" net -- trained on

@@ -239,7 +239,7 @@ PRESET = dict(robot="armar4", dataset="random", executor="mjx", alpha=2.0, actio
 
 def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis: float | None = None,
              env_config: EnvConfig | None = None, root=None) -> HumanoidBalanceEnv:
-    """The balance environment of a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task="balance"``,
+    """The balance environment of a :class:`~mjx_pathtrack.config.run.TrainConfig` (``task="balance"``,
     ``robot="armar4"``: the dataset of ARMAR-4's upper-body paths; ``balance``: :class:`TaskConfig`).
     ``paths``/``max_dis``/``env_config`` replace the dataset split, its knot spacing and the
     config's :class:`EnvConfig` (evaluation on user paths or whole paths); ``root``: the dataset

@@ -8,7 +8,7 @@ import pytest
 from mjx_pathtrack.core.reward import RewardWeights
 from mjx_pathtrack.deploy.networks import NetworkConfig
 from mjx_pathtrack.envs.tracking import EnvConfig
-from mjx_pathtrack.rl.config import FLAT_NAMES, PPOConfig, TrainConfig, differences
+from mjx_pathtrack.config.run import FLAT_NAMES, PPOConfig, TrainConfig, differences
 from mjx_pathtrack.rl.velocity_max_train import VelocityTrainConfig
 
 

@@ -34,7 +34,7 @@ from mjx_pathtrack.envs.tasks import ball_on_plate, humanoid_balance
 from mjx_pathtrack.envs.tracking import EnvConfig
 from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.robots import registry as robots
-from mjx_pathtrack.rl.options import ConfigError, Options, differences, leaves  # noqa: F401  (re-exported)
+from mjx_pathtrack.config.options import ConfigError, Options, differences, leaves  # noqa: F401  (re-exported)
 
 
 #: task variants (``TrainConfig.task``): plain path tracking or a sensory-feedback task (mjx_pathtrack.envs.tasks)

@@ -1,5 +1,5 @@
 """Presets: the papers' settings per robot and task, and the training recipes of ``train.py
---preset``, each a dict of flat option names (:data:`mjx_pathtrack.rl.config.FLAT_NAMES`) that
+--preset``, each a dict of flat option names (:data:`mjx_pathtrack.config.run.FLAT_NAMES`) that
 ``train.py`` applies as flag defaults (explicit flags still win).
 
 A task's preset lives next to the task (``PRESET`` in :mod:`mjx_pathtrack.envs.tasks.ball_on_plate`
@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from mjx_pathtrack.envs.tasks import ball_on_plate, humanoid_balance
-from mjx_pathtrack.rl.config import TASKS
+from mjx_pathtrack.config.run import TASKS
 
 
 #: the papers' settings (docs/method.md §2.4, §3, docs/training.md §1) for a robot
