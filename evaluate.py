@@ -51,6 +51,9 @@ def parse_args(argv=None):
     parser.add_argument("--end-knot-tolerance", type=float, default=None, metavar="RAD",
                         help="with --end-stop end_knot: a joint brakes once its stop ends this close to its end-knot "
                              "coordinate (smaller: closer to the end knot, slower), instead of the training config's")
+    parser.add_argument("--ball-physics", choices=("arm", "plate"), default=None,
+                        help="ball_on_plate: evaluate in the full-arm scene (arm) or with the plate's motion "
+                             "prescribed (plate); default: the scene the run trained in")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--jerk-optimum", action="store_true",
                         help="also the jerk-limited time-optimal duration of every episode (TOPP3 of copp-py, ~1 s "
@@ -85,7 +88,7 @@ def main(argv=None) -> int:
             raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
         # the training config's settings that the flags above replace (unset flags keep them)
         overrides = {name: getattr(args, name) for name in ("terminate_deviation", "end_braking", "end_stop",
-                                                            "end_knot_tolerance", "end_tolerance")}
+                                                            "end_knot_tolerance", "end_tolerance", "ball_physics")}
         overrides = {name: value for name, value in overrides.items() if value is not None}
         source = dataclasses.replace(source, config=source.config.replace(**overrides))
         env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
@@ -104,7 +107,7 @@ def main(argv=None) -> int:
             "actions": "sampled" if args.stochastic else "deterministic",
             "terminate_deviation": source.config.env.terminate_deviation, "end_tolerance": source.config.env.end_tolerance,
             "end_braking": source.config.env.end_braking, "end_stop": source.config.env.end_stop,
-            "end_knot_tolerance": source.config.env.end_knot_tolerance,
+            "end_knot_tolerance": source.config.env.end_knot_tolerance, "ball_physics": source.config.ball_on_plate.physics,
             "plot_episode": episode}
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if args.full_paths else f'sub-paths, seed {args.seed}'}"
              f"{', sampled actions' if args.stochastic else ''})")

@@ -35,9 +35,10 @@ def parse_args(argv=None):
     from mjx_pathtrack.config.run import EXECUTORS, TASKS, TrainConfig
     from mjx_pathtrack.config.options import add_flags, from_flags
     from mjx_pathtrack.config.presets import RECIPES, preset, recipe
+    from mjx_pathtrack.envs.tasks import ball_on_plate
 
     choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING,
-               "end_stop": END_STOP}
+               "end_stop": END_STOP, "ball_physics": ball_on_plate.PHYSICS}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "

@@ -1,4 +1,5 @@
-"""Throughput of the ball-on-plate task (MJX, ball simulated) against plain iiwa path tracking in MJX.
+"""Throughput of the ball-on-plate task (MJX, ball simulated), with the full arm and with the plate's
+motion prescribed, against plain iiwa path tracking in MJX.
 
 Run: python benchmarks/bench_ball.py [--batch 1024] [--steps 10]
 
@@ -6,7 +7,8 @@ Both environments run ``--steps`` decision steps of ``--batch`` environments (vm
 ``env.step`` in a jitted ``lax.scan``, random actions in [-1, 1]) after an ahead-of-time compile.
 A decision step is 24 physics steps (0.1 s at 1/240 s). Printed: decision steps/s and physics
 steps/s (batch * steps * 24 / s) of each, and the ball task's ratio to the reference measured in
-the same run (the plain iiwa with ``MjxExecutor`` on the iiwa random paths, no contacts).
+the same run (the plain iiwa with ``MjxExecutor`` on the iiwa random paths, no contacts), and
+the prescribed-plate executor's ratio to the full-arm one (same episodes, same actions).
 """
 
 from __future__ import annotations
@@ -56,15 +58,22 @@ def main() -> None:
     args = parser.parse_args()
     reference = make_env(TrainConfig().replace(robot="iiwa", dataset="random", executor="mjx"), "test")
     ball = make_env(TrainConfig().replace(**BP.PRESET), "test")
+    plate = make_env(TrainConfig().replace(**BP.PRESET, ball_physics="plate"), "test")
+    rolling = make_env(TrainConfig().replace(**BP.PRESET, ball_physics="rolling"), "test")
     rows = {"iiwa mjx path tracking (reference)": measure(reference, args.batch, args.steps),
-            "ball on plate (iiwa_ball, ball simulated)": measure(ball, args.batch, args.steps)}
+            "ball on plate, full arm (iiwa_ball scene)": measure(ball, args.batch, args.steps),
+            "ball on plate, plate motion prescribed": measure(plate, args.batch, args.steps),
+            "ball on plate, rolling ball in pure JAX": measure(rolling, args.batch, args.steps)}
     print(f"batch {args.batch}, {args.steps} decision steps of 24 physics steps each, CPU ({jax.devices()[0]})")
     for name, r in rows.items():
         print(f"{name:<44} {r['decision_steps_per_s']:>10,.0f} decision steps/s  {r['physics_steps_per_s']:>12,.0f} "
               f"physics steps/s  (compile {r['compile_s']:.0f} s, finite {r['finite']})")
-    ref, task = rows.values()
-    print(f"ratio ball / reference: {task['decision_steps_per_s'] / ref['decision_steps_per_s']:.3f}")
-
+    ref, task, cheap, roll = rows.values()
+    print(f"ratio full-arm ball / reference: {task['decision_steps_per_s'] / ref['decision_steps_per_s']:.3f}")
+    print(f"ratio prescribed plate / full-arm ball (same states): "
+          f"{cheap['decision_steps_per_s'] / task['decision_steps_per_s']:.2f}")
+    print(f"ratio rolling ball / full-arm ball (same states): "
+          f"{roll['decision_steps_per_s'] / task['decision_steps_per_s']:.2f}")
 
 if __name__ == "__main__":
     main()

@@ -183,6 +183,7 @@ FLAT_NAMES: dict[str, tuple[str, ...]] = {
     "num_evals": ("eval.num_evals",),
     "eval_episodes": ("eval.episodes",),
     "ball_reward": ("ball_on_plate.reward",),
+    "ball_physics": ("ball_on_plate.physics",),
     "legs": ("balance.legs",),
     "balance_reward": ("balance.reward",),
 }
@@ -209,6 +210,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
             fail(name, f"{get(name)!r} is not one of {', '.join(allowed)}")
     if c.task != "balance" and c.robot not in robots.known_robots():
         fail("robot", f"unknown robot {c.robot!r}; known: {', '.join(robots.known_robots())}")
+    if c.ball_on_plate.physics not in ball_on_plate.PHYSICS:
+        fail("ball_physics", f"{c.ball_on_plate.physics!r} is not one of {', '.join(ball_on_plate.PHYSICS)}")
     if c.task == "balance" and c.balance.legs not in humanoid_balance.LEGS:
         fail("legs", f"{c.balance.legs!r} is not one of {', '.join(humanoid_balance.LEGS)}")
     for name in ("dt", "duration", "end_knot_tolerance", "learning_rate", "init_noise_std", "mean_init_scale",

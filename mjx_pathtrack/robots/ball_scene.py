@@ -40,16 +40,25 @@ def add_plate_and_ball(spec: mujoco.MjSpec, link: str = "iiwa_link_7") -> None:
     parent = spec.body(link)
     if parent is None:
         raise ValueError(f"ball scene: link {link!r} not in the model")
-    half = np.asarray(PLATE_SIZE) / 2.0
     yaw = [np.cos(-np.pi / 4), 0.0, 0.0, np.sin(-np.pi / 4)]  # -pi/2 about z (w, x, y, z)
     plate = parent.add_body(name="plate", pos=[0.0, 0.0, PLATE_OFFSET], quat=yaw)
+    _plate_geometry(plate, PLATE_MASS)
+    _add_ball(spec)
+
+
+def _plate_geometry(plate, mass: float) -> None:
+    """The plate's box geom, site and (box) inertia of ``mass`` [kg] on body ``plate``."""
+    half = np.asarray(PLATE_SIZE) / 2.0
     plate.explicitinertial = True
-    plate.mass = PLATE_MASS
-    plate.inertia = PLATE_MASS / 3.0 * np.array([half[1] ** 2 + half[2] ** 2, half[0] ** 2 + half[2] ** 2,
-                                                 half[0] ** 2 + half[1] ** 2])
+    plate.mass = mass
+    plate.inertia = mass / 3.0 * np.array([half[1] ** 2 + half[2] ** 2, half[0] ** 2 + half[2] ** 2,
+                                           half[0] ** 2 + half[1] ** 2])
     plate.add_geom(name="plate", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half), contype=_CONTACT_BIT,
                    conaffinity=_CONTACT_BIT, condim=3, friction=[1.0, 0.005, 0.0001], rgba=[0.8, 0.8, 0.8, 1])
     plate.add_site(name="plate", pos=[0.0, 0.0, half[2]], size=[0.005, 0, 0])
+
+
+def _add_ball(spec: mujoco.MjSpec) -> None:
     ball = spec.worldbody.add_body(name="ball")
     ball.add_freejoint(name="ball")
     ball.explicitinertial = True
@@ -60,6 +69,31 @@ def add_plate_and_ball(spec: mujoco.MjSpec, link: str = "iiwa_link_7") -> None:
     ball.add_site(name="ball", size=[0.005, 0, 0])
     spec.add_sensor(name="ball_in_plate", type=mujoco.mjtSensor.mjSENS_FRAMEPOS, objtype=mujoco.mjtObj.mjOBJ_SITE,
                     objname="ball", reftype=mujoco.mjtObj.mjOBJ_SITE, refname="plate")
+
+
+#: mass [kg] of the plate of :func:`plate_and_ball_model`: so heavy that the ball's contact
+#: forces cannot move it within a physics step (its motion is prescribed: overwritten every step)
+PRESCRIBED_PLATE_MASS = 1e4
+
+
+def plate_and_ball_model(full: mujoco.MjModel) -> mujoco.MjModel:
+    """The plate and the ball of the ``iiwa_ball`` scene ``full`` without the arm: the plate on a
+    free joint ``plate`` (``qpos[0:7]``, ``qvel[0:6]``; gravity compensated, mass
+    :data:`PRESCRIBED_PLATE_MASS`) whose pose and velocity the caller prescribes before every
+    step, the ball on its free joint after it, the ``ball_in_plate`` sensor, and ``full``'s
+    physics options (time step, integrator, solver, iterations, disabled constraints)."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "plate_and_ball"
+    plate = spec.worldbody.add_body(name="plate")
+    plate.add_freejoint(name="plate")
+    plate.gravcomp = 1.0
+    _plate_geometry(plate, PRESCRIBED_PLATE_MASS)
+    _add_ball(spec)
+    model = spec.compile()
+    for name in ("timestep", "integrator", "solver", "cone", "iterations", "ls_iterations", "tolerance",
+                 "ls_tolerance", "impratio", "disableflags", "enableflags", "gravity", "noslip_iterations"):
+        setattr(model.opt, name, getattr(full.opt, name))
+    return model
 
 
 def ball_pose_on_plate(plate_pos: Array, plate_mat: Array, xy: Array, radius: Array) -> Array:
@@ -122,15 +156,22 @@ def randomize_balls(mjx_model, keys: Array, ids: tuple[int, int, int]):
     return models, axes, radius, mass
 
 
+def sample_ball(key: Array) -> tuple[Array, Array]:
+    """The ball's radius ~ U(20, 36) mm and mass ~ U(2, 203) g drawn from ``key``: ``(radius [m],
+    mass [kg])``, scalars. Pure JAX."""
+    k_r, k_m = jax.random.split(key)
+    radius = jax.random.uniform(k_r, (), minval=RADIUS_RANGE[0], maxval=RADIUS_RANGE[1])
+    mass = jax.random.uniform(k_m, (), minval=MASS_RANGE[0], maxval=MASS_RANGE[1])
+    return radius, mass
+
+
 def randomize_ball(mjx_model, key: Array, ball_body: int, ball_geom: int, ball_dof: int):
     """A copy of ``mjx_model`` with the ball's radius ~ U(20, 36) mm and mass ~ U(2, 203) g
     (solid-sphere inertia). Also updates the fields derived from them at compile time
     (``geom_rbound``, ``body_invweight0``, ``dof_invweight0``). Pure JAX; ``jax.vmap`` over keys
     gives a batch of models (use ``in_axes`` for the changed fields). Returns ``(model, radius, mass)``.
     """
-    k_r, k_m = jax.random.split(key)
-    radius = jax.random.uniform(k_r, (), minval=RADIUS_RANGE[0], maxval=RADIUS_RANGE[1])
-    mass = jax.random.uniform(k_m, (), minval=MASS_RANGE[0], maxval=MASS_RANGE[1])
+    radius, mass = sample_ball(key)
     inertia = 0.4 * mass * radius**2
     model = mjx_model.tree_replace({
         "geom_size": mjx_model.geom_size.at[ball_geom, 0].set(radius),

@@ -90,7 +90,8 @@ class BallState(NamedTuple):
     """Executor state of one environment: ``data`` (``mjx.Data``); ``key``: the episode's ball
     parameters (radius, mass, friction are re-derived from it); ``ball_prev``/``ball`` ``[3]``:
     ball centre in the plate frame [m] before/after the last step; ``target``/``relative``
-    ``[3]``: Cartesian reference point and reference minus executed end point [m]."""
+    ``[3]``: Cartesian reference point and reference minus executed end point [m]; ``q`` ``[7]``:
+    the arm's executed joint positions [rad]."""
 
     data: Any
     key: Array
@@ -98,6 +99,7 @@ class BallState(NamedTuple):
     ball: Array
     target: Array
     relative: Array
+    q: Array
 
 
 class BallExecutor:
@@ -110,11 +112,19 @@ class BallExecutor:
     def __init__(self, robot):
         if "ball" not in [robot.mj_model.body(i).name for i in range(robot.mj_model.nbody)]:
             raise ValueError(f"robot {robot.name!r} has no ball; use robots.load_robot('iiwa_ball')")
-        model = copy.copy(robot.mj_model)
+        model = self._use_model(robot, copy.copy(robot.mj_model))
+        data = mujoco.MjData(model)
+        data.qpos[:] = robot.qpos0
+        data.ctrl[:] = np.concatenate([robot.q0, np.zeros(robot.n_joints)])
+        mujoco.mj_forward(model, data)
+        self._data0 = mjx.put_data(model, data)
+
+    def _use_model(self, robot, model: mujoco.MjModel) -> mujoco.MjModel:
+        """Simulate ``model`` (a scene with the plate, the ball and its sensor; changed in place:
+        the ball's contact gets rolling and torsional friction) for ``robot``; returns it."""
         self.ids = B.ball_ids(model)
-        plate_geom = model.geom("plate").id
         model.geom_condim[self.ids[1]] = 6  # rolling/torsional friction act
-        model.geom_friction[plate_geom] = [1.0, 0.0, 0.0]  # contact friction = max of both: the ball's
+        model.geom_friction[model.geom("plate").id] = [1.0, 0.0, 0.0]  # contact friction = max of both: the ball's
         self.mj_model = model
         self.robot = robot
         self.mjx_model = mjx.put_model(model)
@@ -123,11 +133,7 @@ class BallExecutor:
         self.ball_qpos = int(model.jnt_qposadr[model.joint("ball").id])
         self.sensor_adr = int(model.sensor_adr[model.sensor("ball_in_plate").id])
         self.target_site = int(np.asarray(robot.site_ids)[0])
-        data = mujoco.MjData(model)
-        data.qpos[:] = robot.qpos0
-        data.ctrl[:] = np.concatenate([robot.q0, np.zeros(robot.n_joints)])
-        mujoco.mj_forward(model, data)
-        self._data0 = mjx.put_data(model, data)
+        return model
 
     def model(self, key: Array):
         """The episode's ``mjx.Model`` (ball radius, mass, friction drawn from ``key``) and the radius."""
@@ -144,7 +150,7 @@ class BallExecutor:
                                    qvel=jnp.zeros_like(self._data0.qvel), ctrl=r.ctrl(p0, jnp.zeros_like(p0)))
         data = mjx.kinematics(self.mjx_model, data)
         state = BallState(data, jax.random.PRNGKey(0), jnp.zeros(3), jnp.zeros(3),
-                          data.site_xpos[self.target_site], jnp.zeros(3))
+                          data.site_xpos[self.target_site], jnp.zeros(3), jnp.asarray(p0, jnp.float32))
         return self.place_ball(state, jnp.zeros(2), jnp.asarray(B.BALL_RADIUS, jnp.float32))
 
     def place_ball(self, state: BallState, xy: Array, radius: Array) -> BallState:
@@ -173,7 +179,7 @@ class BallExecutor:
         start = state.data.qpos[r.qpos_adr]
         data, measured = jax.lax.scan(physics, state.data, jnp.arange(self.substeps))
         ball = data.sensordata[self.sensor_adr:self.sensor_adr + 3]
-        new = state._replace(data=data, ball_prev=state.ball, ball=ball)
+        new = state._replace(data=data, ball_prev=state.ball, ball=ball, q=measured[-1])
         return new, jnp.concatenate([start[None], measured]), {"ball": ball}
 
 
@@ -214,7 +220,7 @@ class BallOnPlateEnv(PathTrackingEnv):
         ex = new.executor
         # Cartesian reference point at the new arc position and the executed end point
         q_ref = self.home.at[self.path_joints].set(S.point_at(self.reference(new), new.s))
-        q_end = new.executor.data.qpos[self.executor.robot.qpos_adr]
+        q_end = new.executor.q
         pos, _ = self.executor.robot.fk(jnp.stack([q_ref, q_end]))
         new = new._replace(executor=ex._replace(target=pos[0, 0], relative=pos[0, 0] - pos[1, 0]))
         # a fall also spoils success when it does not end the episode (trained without the ball)
@@ -245,10 +251,21 @@ def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) ->
     return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra_blocks(sensor))
 
 
+#: the task's physics (``make_env(physics=...)``): ``"arm"``, the whole servo-driven arm with the
+#: plate and the ball in MJX (:class:`BallExecutor`, the reference); ``"plate"``, the plate's
+#: motion prescribed by the setpoints and only the plate and the ball in MJX
+#: (:class:`~mjx_pathtrack.envs.tasks.plate_executor.PrescribedPlateExecutor`, 1.2x the
+#: reference's speed); ``"rolling"``, the plate prescribed and the ball rolling on it in pure JAX
+#: (:class:`~mjx_pathtrack.envs.tasks.rolling_ball.RollingBallExecutor`, ~20x; the preset's)
+PHYSICS = ("arm", "plate", "rolling")
+
+
 def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallConfig = BallConfig(),
-             reflections: bool = False, dt: float = 0.1, root=None) -> BallOnPlateEnv:
+             reflections: bool = False, dt: float = 0.1, root=None, physics: str = "arm") -> BallOnPlateEnv:
     """The task on ``splines/iiwa/ball_balancing/<split>``; ``reflections``: add the dataset's
-    reflected copies of every path (docs/paths.md §5, 4x augmentation)."""
+    reflected copies of every path (docs/paths.md §5, 4x augmentation); ``physics``: :data:`PHYSICS`."""
+    if physics not in PHYSICS:
+        raise ValueError(f"unknown ball physics {physics!r}; known: {', '.join(PHYSICS)}")
     from mjx_pathtrack.paths import datasets
     from mjx_pathtrack.robots import registry as robots
     from mjx_pathtrack.paths.ball import REFLECTION_VECTORS, reflect_paths
@@ -260,28 +277,41 @@ def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallCo
         knots = reflect_paths(knots, meta.get("reflection_vectors") or REFLECTION_VECTORS)
     paths = S.stack_fits(S.fit_spline(k) for k in knots)
     cfg = env_config() if config is None else config
-    return BallOnPlateEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), cfg, BallExecutor(robot), ball,
+    if physics == "plate":
+        from mjx_pathtrack.envs.tasks.plate_executor import PrescribedPlateExecutor
+
+        executor = PrescribedPlateExecutor(robot)
+    elif physics == "rolling":
+        from mjx_pathtrack.envs.tasks.rolling_ball import RollingBallExecutor
+
+        executor = RollingBallExecutor(robot)
+    else:
+        executor = BallExecutor(robot)
+    return BallOnPlateEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), cfg, executor, ball,
                           home=robot.q0)
 
 
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
     """The task's own training settings (``TrainConfig.ball_on_plate``): ``reward``: weight of
-    R_ball; 0: trained without the ball (neither observed, rewarded nor ending the episode)."""
+    R_ball; 0: trained without the ball (neither observed, rewarded nor ending the episode);
+    ``physics``: :data:`PHYSICS` (default ``"arm"``, the reference; the preset trains with
+    ``"rolling"``, docs/results.md "Ball on plate")."""
 
     reward: float = 1.0
+    physics: str = "arm"
 
 
 #: ``train.py --task ball_on_plate``: the papers' ball-net settings and a CPU-sized PPO budget
-#: (flat option names, :data:`mjx_pathtrack.config.run.FLAT_NAMES`)
+#: (flat option names, :data:`mjx_pathtrack.rl.config.FLAT_NAMES`)
 PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", executor="mjx", n_next=4, alpha=4.0,
-              beta=0.9, action_reward=0.0, duration=6.0, terminate_deviation=0.25, ball_reward=1.0,
+              beta=0.9, action_reward=0.0, duration=6.0, terminate_deviation=0.25, ball_reward=1.0, ball_physics="rolling",
               num_envs=128, batch_size=128, num_minibatches=4, unroll_length=10, num_updates_per_batch=4,
               num_timesteps=300_000, num_evals=2, eval_episodes=64)
 
 
 def make_task_env(config, split: str = "train", root=None, evaluation: bool | None = None) -> BallOnPlateEnv:
-    """The task for a :class:`~mjx_pathtrack.config.run.TrainConfig` (``task='ball_on_plate'``).
+    """The task for a :class:`~mjx_pathtrack.rl.config.TrainConfig` (``task='ball_on_plate'``).
 
     ``config.ball_on_plate.reward > 0``: R_ball with that weight, ball sensor observed, episode
     ends when the ball falls. ``reward == 0``: the papers' "no balancing reward" net -- trained on
@@ -295,4 +325,5 @@ def make_task_env(config, split: str = "train", root=None, evaluation: bool | No
                                   brake_at_end=False, terminate_on_stop=False)
     ball = BallConfig(reward=weight, sensor=with_ball, terminate=with_ball or evaluation)
     root = config.dataset_root if root is None else root
-    return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.env.dt, root=root)
+    return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.env.dt, root=root,
+                    physics=config.ball_on_plate.physics)
