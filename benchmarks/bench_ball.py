@@ -57,9 +57,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10, help="decision steps per timed run")
     args = parser.parse_args()
     reference = make_env(TrainConfig().replace(robot="iiwa", dataset="random", executor="mjx"), "test")
-    ball = make_env(TrainConfig().replace(**BP.PRESET), "test")
-    plate = make_env(TrainConfig().replace(**BP.PRESET, ball_physics="plate"), "test")
-    rolling = make_env(TrainConfig().replace(**BP.PRESET, ball_physics="rolling"), "test")
+    ball = make_env(TrainConfig().replace(**{**BP.PRESET, "ball_physics": "arm"}), "test")
+    plate = make_env(TrainConfig().replace(**{**BP.PRESET, "ball_physics": "plate"}), "test")
+    rolling = make_env(TrainConfig().replace(**{**BP.PRESET, "ball_physics": "rolling"}), "test")
     rows = {"iiwa mjx path tracking (reference)": measure(reference, args.batch, args.steps),
             "ball on plate, full arm (iiwa_ball scene)": measure(ball, args.batch, args.steps),
             "ball on plate, plate motion prescribed": measure(plate, args.batch, args.steps),

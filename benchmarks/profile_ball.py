@@ -43,7 +43,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    env = make_env(TrainConfig().replace(**BP.PRESET), "test")
+    env = make_env(TrainConfig().replace(**{**BP.PRESET, "ball_physics": "arm"}), "test")  # the full-arm scene
     ex = env.executor
     keys = jax.random.split(jax.random.PRNGKey(0), args.batch)
     state = jax.jit(jax.vmap(env.reset))(keys)
