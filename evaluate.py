@@ -51,7 +51,7 @@ def parse_args(argv=None):
     parser.add_argument("--end-knot-tolerance", type=float, default=None, metavar="RAD",
                         help="with --end-stop end_knot: a joint brakes once its stop ends this close to its end-knot "
                              "coordinate (smaller: closer to the end knot, slower), instead of the training config's")
-    parser.add_argument("--ball-physics", choices=("arm", "plate"), default=None,
+    parser.add_argument("--ball-physics", choices=("arm", "plate", "rolling"), default=None,
                         help="ball_on_plate: evaluate in the full-arm scene (arm) or with the plate's motion "
                              "prescribed (plate); default: the scene the run trained in")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")

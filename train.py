@@ -31,14 +31,10 @@ def parse_args(argv=None):
     """``(args, TrainConfig)`` of the command line: one flag per flat option of
     :class:`~mjx_pathtrack.config.run.TrainConfig` (``--alpha``, ``--num-envs``, ...), whose defaults a
     robot's or task's preset and then ``--preset`` replace (:mod:`mjx_pathtrack.config.presets`)."""
-    from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES
-    from mjx_pathtrack.config.run import EXECUTORS, TASKS, TrainConfig
     from mjx_pathtrack.config.options import add_flags, from_flags
     from mjx_pathtrack.config.presets import RECIPES, preset, recipe
-    from mjx_pathtrack.envs.tasks import ball_on_plate
+    from mjx_pathtrack.config.run import CHOICES, TrainConfig
 
-    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING,
-               "end_stop": END_STOP, "ball_physics": ball_on_plate.PHYSICS}
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "
@@ -66,7 +62,7 @@ def parse_args(argv=None):
     parser.add_argument("--coordinator", default=None, help="host:port of process 0 (or JAX_COORDINATOR_ADDRESS)")
     parser.add_argument("--num-processes", type=int, default=None)
     parser.add_argument("--process-id", type=int, default=None)
-    add_flags(parser, TrainConfig, choices)
+    add_flags(parser, TrainConfig, CHOICES)
     known, _ = parser.parse_known_args(argv)
     try:
         parser.set_defaults(**preset(known.robot, known.task))

@@ -14,6 +14,7 @@ differenced into the stages' own cost. Reference rows in the same run: the iiwa'
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import mjx_pathtrack
@@ -58,35 +59,22 @@ def main() -> None:
         """``f(model, data)`` vmapped with each environment's own randomised ball model."""
         return lambda k, d: jax.vmap(lambda kk, dd: f(ex.model(kk)[0], dd))(k, d)
 
-    def pos_smooth(m, d):
-        d = smooth.kinematics(m, d)
-        d = smooth.com_pos(m, d)
-        d = smooth.crb(m, d)
-        return smooth.factor_m(m, d)
-
-    def pos_collision(m, d):
-        return collision_driver.collision(m, pos_smooth(m, d))
-
-    def pos_constraint(m, d):
-        return constraint.make_constraint(m, pos_collision(m, d))
-
-    def smooth_dynamics(m, d):
-        d = forward.fwd_position(m, d)
-        d = forward.fwd_velocity(m, d)
-        d = forward.fwd_actuation(m, d)
-        return forward.fwd_acceleration(m, d)
-
-    def with_solver(m, d):
-        return solver.solve(m, smooth_dynamics(m, d))
-
-    stages = [("forward: kinematics, com, crb, factor_m", pos_smooth), ("  + collision", pos_collision),
-              ("  + make_constraint", pos_constraint), ("  + velocity, actuation, smooth acceleration", smooth_dynamics),
-              ("  + constraint solver", with_solver), ("mjx.step (+ sensors, integration)", forward.step)]
+    # MJX's forward pipeline (mujoco.mjx._src.forward.forward) in stages; each row runs the
+    # stages up to its own (the model has no tendons, cameras or lights: those stages are left out)
+    stages = [("forward: kinematics, com, crb, factor_m", [smooth.kinematics, smooth.com_pos, smooth.crb, smooth.factor_m]),
+              ("  + collision", [collision_driver.collision]),
+              ("  + make_constraint, transmission", [constraint.make_constraint, smooth.transmission]),
+              ("  + velocity, actuation, smooth acceleration",
+               [forward.fwd_velocity, forward.fwd_actuation, forward.fwd_acceleration]),
+              ("  + constraint solver", [solver.solve])]
     from mujoco import mjx
 
-    rows = []
-    for name, f in stages:
-        rows.append((name, best_time(per_env(f), (ball_keys, data), args.repeats)))
+    rows, done = [], []
+    for name, fns in stages:
+        done = done + fns
+        rows.append((name, best_time(per_env(lambda m, d, fns=done: functools.reduce(lambda d, f: f(m, d), fns, d)),
+                                     (ball_keys, data), args.repeats)))
+    rows.append(("mjx.step (+ sensors, integration)", best_time(per_env(forward.step), (ball_keys, data), args.repeats)))
     full = rows[-1][1]
     model_only = best_time(lambda k: jax.vmap(lambda kk: ex.model(kk)[0].geom_friction)(k), (ball_keys,), args.repeats)
     shared = best_time(jax.vmap(lambda d: mjx.step(m_shared, d)), (data,), args.repeats)

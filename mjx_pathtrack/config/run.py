@@ -31,7 +31,7 @@ from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.deploy.networks import NetworkConfig
 from mjx_pathtrack.envs.registry import EXECUTORS, FACTORIES
 from mjx_pathtrack.envs.tasks import ball_on_plate, humanoid_balance
-from mjx_pathtrack.envs.tracking import EnvConfig
+from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES, EnvConfig
 from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.config.options import ConfigError, Options, differences, leaves  # noqa: F401  (re-exported)
@@ -192,6 +192,13 @@ FLAT_NAMES: dict[str, tuple[str, ...]] = {
 TrainConfig.FLAT_NAMES = FLAT_NAMES
 
 
+#: the allowed values of the options that take one of a few (flat name -> values): the
+#: command line's choices and :func:`validate_config`'s check
+CHOICES: dict[str, tuple[str, ...]] = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES,
+                                       "end_braking": END_BRAKING, "end_stop": END_STOP,
+                                       "ball_physics": ball_on_plate.PHYSICS}
+
+
 def validate_config(config: TrainConfig, devices: int = 1) -> None:
     """Raise :class:`ConfigError` naming the option (its flag) unless every option of ``config``
     can work: before anything is written or compiled."""
@@ -201,17 +208,11 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
     def fail(option, message):
         raise ConfigError(f"--{option.replace('_', '-')}: {message}")
 
-    from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES
-
-    choices = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES, "end_braking": END_BRAKING,
-               "end_stop": END_STOP}
-    for name, allowed in choices.items():
+    for name, allowed in CHOICES.items():
         if get(name) not in allowed:
             fail(name, f"{get(name)!r} is not one of {', '.join(allowed)}")
     if c.task != "balance" and c.robot not in robots.known_robots():
         fail("robot", f"unknown robot {c.robot!r}; known: {', '.join(robots.known_robots())}")
-    if c.ball_on_plate.physics not in ball_on_plate.PHYSICS:
-        fail("ball_physics", f"{c.ball_on_plate.physics!r} is not one of {', '.join(ball_on_plate.PHYSICS)}")
     if c.task == "balance" and c.balance.legs not in humanoid_balance.LEGS:
         fail("legs", f"{c.balance.legs!r} is not one of {', '.join(humanoid_balance.LEGS)}")
     for name in ("dt", "duration", "end_knot_tolerance", "learning_rate", "init_noise_std", "mean_init_scale",
@@ -219,9 +220,9 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         value = get(name)
         if not (value is not None and np.isfinite(value) and value > 0):
             fail(name, f"must be a finite number > 0, got {value}")
-    _check_nonnegative("beta", c.env.reward.mean_deviation, fail)  # (``get`` reads its first path only)
     for name in ("alpha", "beta", "action_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
-        _check_nonnegative(name, get(name), fail)
+        for path in TrainConfig.paths(name):  # (beta: both deviation weights)
+            _check_nonnegative(name, get(path), fail)
     for name, lo, hi in (("discounting", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clipping_epsilon", 0.0, 1.0)):
         value = get(name)
         if not (np.isfinite(value) and lo < value <= hi):

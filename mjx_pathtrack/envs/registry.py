@@ -25,15 +25,19 @@ def make_tracking(config, split: str = "train", root=None) -> PathTrackingEnv:
     from mjx_pathtrack.robots import registry as robots
 
     root = config.dataset_root if root is None else root
-    if config.executor not in EXECUTORS:
-        raise ValueError(f"unknown executor {config.executor!r}; known: {', '.join(EXECUTORS)}")
     robot = robots.load_robot(config.robot, dt=config.env.dt)
     meta = datasets.read_config(config.robot, config.dataset, root)
     paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
-    path_joints = np.flatnonzero(np.asarray(robot.path_mask))
-    executor = MjxExecutor(robot) if config.executor == "mjx" else None
-    return PathTrackingEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), config.env_config(),
-                           path_joints=path_joints, home=robot.q0, executor=executor)
+    return tracking_env(robot, paths, float(meta["max_dis_between_knots"]), config.env_config(), config.executor)
+
+
+def tracking_env(robot, paths, max_dis: float, env_config, executor: str = "kinematic") -> PathTrackingEnv:
+    """Path tracking of a registry ``robot`` over ``paths`` (a stacked ``Path``) whose knots are
+    at most ``max_dis`` [rad] apart, with ``env_config`` and the ``executor`` (:data:`EXECUTORS`)."""
+    if executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
+    return PathTrackingEnv(robot.limits, paths, max_dis, env_config, path_joints=np.flatnonzero(np.asarray(robot.path_mask)),
+                           home=robot.q0, executor=MjxExecutor(robot) if executor == "mjx" else None)
 
 
 def _ball_on_plate(config, split: str = "train", root=None):

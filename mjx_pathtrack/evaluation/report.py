@@ -27,11 +27,11 @@ from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.evaluation import rollout as E
 from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs import registry
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
-from mjx_pathtrack.fileio import atomic_write_bytes
+from mjx_pathtrack.fileio import atomic_write_bytes, json_safe
 from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import networks as ppo_networks
-from mjx_pathtrack.fileio import json_safe
 
 #: paper 000 Table VI, policy / TOPP-RA duration, iiwa random paths
 PAPER_RATIO = {"iiwa": 1.27}
@@ -164,13 +164,7 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
 
         env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg)
         return env, humanoid_balance.eval_robot(cfg), label
-    executor = None
-    if cfg.executor == "mjx":
-        from mjx_pathtrack.envs.executors import MjxExecutor
-        executor = MjxExecutor(robot)
-    env = PathTrackingEnv(robot.limits, paths, max_dis, env_cfg, path_joints=np.flatnonzero(robot.path_mask),
-                          home=robot.q0, executor=executor)
-    return env, robot, label
+    return registry.tracking_env(robot, paths, max_dis, env_cfg, cfg.executor), robot, label
 
 
 def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes: int | None = None, seed: int = 0,

@@ -9,13 +9,11 @@ the constant velocity that carries it to the pose at the step's end, so that the
 the plate moving (a mocap body would be still for the contact's friction). The ball is the same
 free body with the same per-episode randomisation (radius, mass, rolling and torsional friction)
 and contact settings as in :class:`~mjx_pathtrack.envs.tasks.ball_on_plate.BallExecutor`, the
-full-arm executor, which stays the reference (fidelity: ``tests/envs/test_plate_executor.py``;
-speed: ``benchmarks/bench_ball.py``).
+full-arm executor, which stays the reference (speed: ``benchmarks/bench_ball.py``; fidelity:
+docs/results.md "Ball on plate").
 """
 
 from __future__ import annotations
-
-import copy
 
 import jax
 import jax.numpy as jnp
@@ -48,7 +46,7 @@ class PrescribedPlateExecutor(BallExecutor):
         self._plate_pos = jnp.asarray(full.geom_pos[geom], jnp.float32)  # plate in its arm link's frame
         self._plate_quat = jnp.asarray(full.geom_quat[geom], jnp.float32)
         self._fk_data = mjx.make_data(robot.mjx_model)
-        self._data0 = mjx.put_data(model, mujoco.MjData(copy.copy(model)))
+        self._data0 = mjx.put_data(model, mujoco.MjData(model))
 
     def arm_kinematics(self, q: Array) -> tuple[Array, Array, Array]:
         """Plate pose and target point of the arm at joint positions ``q [..., 7]``: ``(pos [..., 3],
@@ -77,9 +75,6 @@ class PrescribedPlateExecutor(BallExecutor):
         data = mjx.kinematics(self.mjx_model, data)
         state = BallState(data, jax.random.PRNGKey(0), jnp.zeros(3), jnp.zeros(3), target, jnp.zeros(3), p0)
         return self.place_ball(state, jnp.zeros(2), jnp.asarray(B.BALL_RADIUS, jnp.float32))
-
-    def joint_positions(self, state: BallState) -> Array:
-        return state.q
 
     def execute(self, state: BallState, p, v, a0, a1, dt):
         model, _ = self.model(state.key)

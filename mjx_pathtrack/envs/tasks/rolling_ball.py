@@ -21,7 +21,7 @@ Model (per environment, at the physics step ``h`` = 1/240 s of the MJX scenes):
   the ball's rotation relative to the plate, ``FRICTION_SCALE mu N``, and never reverse it. There is a contact
   only over the plate's area; a ball beyond its edge falls freely.
 
-Validated against the full-arm MJX scene in ``tests/envs/test_rolling_ball.py`` (same safe motions,
+Validated against the full-arm MJX scene in ``tests/envs/test_ball_physics.py`` (same safe motions,
 same balls). The ball's reported position is the MJX sensor's: the ball centre in the plate
 frame at the start of the step's last physics step.
 """
@@ -33,6 +33,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from mjx_pathtrack import _quiet  # noqa: F401,I001  (before mujoco.mjx: silences its Warp notices)
+import mujoco
+from mujoco.mjx._src import math as mjx_math
 
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.envs.tasks.ball_on_plate import FRICTION_RANGE, BallExecutor, BallState
@@ -68,16 +71,14 @@ class BallBody(NamedTuple):
 
 
 def _quat_mat(quat) -> np.ndarray:
-    w, x, y, z = np.asarray(quat, np.float64)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(quat, np.float64))
+    return mat.reshape(3, 3)
 
 
 def _axis_rotation(axis: Array, angle: Array) -> Array:
-    """Rotation matrix ``[3, 3]`` of ``angle`` [rad] about the unit ``axis [3]`` (Rodrigues)."""
-    k = jnp.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return jnp.eye(3) + jnp.sin(angle) * k + (1.0 - jnp.cos(angle)) * (k @ k)
+    """Rotation matrix ``[3, 3]`` of ``angle`` [rad] about the unit ``axis [3]``."""
+    return mjx_math.quat_to_mat(mjx_math.axis_angle_to_quat(axis, angle))
 
 
 def _smooth_direction(w: Array) -> Array:
@@ -116,7 +117,6 @@ class RollingBallExecutor(BallExecutor):
         self._plate_rot = jnp.asarray(_quat_mat(m.geom_quat[plate]), jnp.float32)
         self.half = jnp.asarray(np.asarray(B.PLATE_SIZE[:2]) / 2.0, jnp.float32)
         self.thickness = float(B.PLATE_SIZE[2])
-        self.target_site = int(np.asarray(robot.site_ids)[0])
 
     # -- the plate ----------------------------------------------------------------------------
 
@@ -163,10 +163,8 @@ class RollingBallExecutor(BallExecutor):
         """Arm at rest at ``p0`` [7], default ball at the plate centre."""
         p0 = jnp.asarray(p0, jnp.float32)
         target = self.robot.fk(p0)[0][0]
-        ball = self.sample_ball(jax.random.PRNGKey(0))._replace(radius=jnp.asarray(B.BALL_RADIUS, jnp.float32),
-                                                               mass=jnp.asarray(B.BALL_MASS, jnp.float32))
-        state = BallState(ball, jax.random.PRNGKey(0), jnp.zeros(3), jnp.zeros(3), target, jnp.zeros(3), p0)
-        return self.place_ball(state, jnp.zeros(2), ball.radius)
+        state = BallState(None, jax.random.PRNGKey(0), jnp.zeros(3), jnp.zeros(3), target, jnp.zeros(3), p0)
+        return self.place_ball(state, jnp.zeros(2), jnp.asarray(B.BALL_RADIUS, jnp.float32))  # (sets data)
 
     def place_ball(self, state: BallState, xy: Array, radius: Array) -> BallState:
         """Ball at rest on the plate at ``xy [2]`` [m] (plate frame), arm at ``state.q`` (at rest)."""
@@ -174,10 +172,6 @@ class RollingBallExecutor(BallExecutor):
         local = jnp.concatenate([xy, radius[None]])
         ball = self.sample_ball(state.key)._replace(pos=origin + rot @ local, radius=radius)
         return state._replace(data=ball, ball_prev=local, ball=local)
-
-    def randomize(self, state: BallState, key: Array) -> BallState:
-        k_model, k_xy = jax.random.split(key)
-        return self.place_ball(state._replace(key=k_model), B.sample_start_xy(k_xy), B.sample_ball(k_model)[0])
 
     def step_ball(self, ball: BallBody, plate0, plate1, h: float) -> BallBody:
         """One physics step of length ``h`` [s]: ``plate0``/``plate1`` = ``(origin, rotation,
