@@ -69,9 +69,11 @@ def observation_layout(n_joints: int, n_path: int, n_next: int,
 
 
 def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, robot_name: str,
-                  joint_names) -> Path:
+                  joint_names, run_config: str | None = None) -> Path:
     """Write ``out_dir/{policy.jaxexport, manifest.json}`` for Brax PPO ``params`` on ``env``
-    (a :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv`). Returns ``out_dir``."""
+    (a :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv`). ``run_config``: the training run's
+    configuration as JSON text (``TrainConfig.to_json()``), recorded as ``run_config`` so that
+    ``evaluate.py`` rebuilds the task's environment from an export. Returns ``out_dir``."""
     from mjx_pathtrack import __version__
 
     out = Path(out_dir)
@@ -108,6 +110,8 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "output": {"shape": ["batch", act_size], "dtype": "float32", "range": [-1.0, 1.0],
                    "meaning": "action per joint, mapped into the safe acceleration range"},
     }
+    if run_config is not None:
+        manifest["run_config"] = json.loads(run_config)
     atomic_write_bytes(out / POLICY_FILE, bytes(exported.serialize()))
     atomic_write_bytes(out / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
     return out

@@ -73,8 +73,17 @@ def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
         except export.ExportError as e:
             raise EvaluationError(str(e)) from e
         man = exported.manifest
-        config = TrainConfig.from_flat({"robot": man["robot"], "dt": float(man["dt"]), "n_next": int(man["n_next"]),
-                                        **export.env_settings(man)})
+        if "run_config" in man:  # the training run's whole configuration (the task's included)
+            try:
+                config = TrainConfig.from_json(json.dumps(man["run_config"]))
+            except (ValueError, TypeError) as e:
+                raise EvaluationError(f"{root}: corrupt run_config in the manifest: {e}") from e
+        elif man.get("task", "tracking") != "tracking":
+            raise EvaluationError(f"{root}: an export of the {man['task']!r} task written before exports recorded "
+                                  f"the run configuration; evaluate the run directory (the export's parent) instead")
+        else:
+            config = TrainConfig.from_flat({"robot": man["robot"], "dt": float(man["dt"]), "n_next": int(man["n_next"]),
+                                            **export.env_settings(man)})
         call = exported._exported.call  # pure JAX: jit/vmap friendly
         return PolicySource(lambda obs, key: call(obs), config, float(man["max_dis_between_knots"]), "export", root)
     config_file, params_file = root / "config.json", root / "params.pkl"
@@ -237,8 +246,8 @@ def format_report(summary: dict, title: str, robot_name: str) -> str:
              f"episodes {summary['episodes']}   end reached {100 * g('end_reached_rate'):.1f} %   "
              f"success {100 * g('success_rate'):.1f} %   progress {100 * g('progress_mean'):.1f} %",
              "terminations: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in summary["termination"].items()),
-             *[f"task: {k[:-5].replace('_', ' ')} in {100 * v:.1f} % of the episodes"
-               for k, v in summary.get("task_failures", {}).items()],
+             *[f"task: balancing error {100 * v:.1f} % ({k[:-5].replace('_', ' ')} in {100 * v:.1f} % of the "
+               "episodes; paper 000 Tables VII, VIII)" for k, v in summary.get("task_failures", {}).items()],
              "",
              "Table I   duration until stopped [s]     mean {:7.3f}   max {:7.3f}".format(g("stop_time_s_mean"),
                                                                                           g("stop_time_s_max")),

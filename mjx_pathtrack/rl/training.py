@@ -302,7 +302,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
         print("evaluation after training:  ", _fmt(report["after"]), flush=True)
         print("  sampled actions:          ", _fmt(report["after_sampled"]), flush=True)
     joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.env.dt).joint_names
-    write_results(run_dir, core.make_policy, params, test_env, config.robot, joint_names, report)
+    write_results(run_dir, core.make_policy, params, test_env, config, joint_names, report)
     return core.make_policy, params, report
 
 
@@ -320,7 +320,7 @@ def _fault_injection(step: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-def write_results(run_dir: FsPath, make_policy, params, env, robot: str, joint_names, report: dict) -> None:
+def write_results(run_dir: FsPath, make_policy, params, env, config: TrainConfig, joint_names, report: dict) -> None:
     """``params.pkl``, ``export/`` and ``report.json`` of a finished run, written side by side
     first and then moved into place (a kill leaves the previous set or the new one, each file
     whole; the export directory is swapped as a whole)."""
@@ -330,7 +330,7 @@ def write_results(run_dir: FsPath, make_policy, params, env, robot: str, joint_n
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
     atomic_write_bytes(staging / "params.pkl", pickle.dumps(params))
-    export_policy(staging / "export", make_policy, params, env, robot, joint_names)
+    export_policy(staging / "export", make_policy, params, env, config.robot, joint_names, config.to_json())
     atomic_write_bytes(staging / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     old_export = run_dir / ".export.old"
     shutil.rmtree(old_export, ignore_errors=True)

@@ -311,7 +311,7 @@ def _train_vectorized(points: Sequence[Point], out: FsPath, verbose: bool):
     joint_names = robots.load_robot(configs[0].robot, dt=configs[0].env.dt).joint_names
     for d, c, p in zip(dirs, configs, params):
         atomic_write_bytes(d / "params.pkl", pickle.dumps(p))
-        export_policy(d / "export", make_policy, p, test_env, c.robot, joint_names)
+        export_policy(d / "export", make_policy, p, test_env, c.robot, joint_names, c.to_json())
     if verbose:
         print(f"  exported {len(points)} policies in {time.monotonic() - t0:.1f} s", flush=True)
     return params, seconds / len(points)

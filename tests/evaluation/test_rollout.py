@@ -210,6 +210,29 @@ def test_export_dir_gives_the_same_policy(tiny_run, tmp_path):
         R.load_policy_source(str(tmp_path / "export"), deterministic=False)
 
 
+def test_export_records_the_run_configuration(tiny_run, tmp_path):
+    """An export rebuilds its run's configuration (task, task options, environment) from the
+    manifest; an older export of a task other than plain tracking is refused with a clear error."""
+    import json
+
+    from brax.training.agents.ppo import networks as ppo_nets
+
+    from mjx_pathtrack.deploy.export import MANIFEST_FILE, export_policy
+
+    run, (cfg, env, nets, params) = tiny_run
+    ball_cfg = cfg.replace(task="ball_on_plate", dataset="ball_balancing", ball_reward=0.5, ball_physics="rolling",
+                           duration=6.0)
+    out = export_policy(tmp_path / "export", ppo_nets.make_inference_fn(nets), params, env, "iiwa",
+                        robots.load_robot("iiwa").joint_names, ball_cfg.to_json())
+    assert R.load_policy_source(str(out)).config == ball_cfg
+    manifest = json.loads((out / MANIFEST_FILE).read_text())
+    del manifest["run_config"]
+    manifest["task"] = "ball_on_plate"
+    (out / MANIFEST_FILE).write_text(json.dumps(manifest))
+    with pytest.raises(R.EvaluationError, match="'ball_on_plate' task written before exports recorded"):
+        R.load_policy_source(str(out))
+
+
 def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run):
     run, (cfg, env, _, _) = tiny_run
     mean = R.load_policy_source(str(run)).policy
