@@ -22,31 +22,38 @@ def _add_target_sites(spec: mujoco.MjSpec, links: tuple[str, ...], far_points: d
         body.add_site(name=f"target_{link}", pos=list(pos), size=[0.01, 0, 0], group=4)
 
 
-#: links whose (fused) geoms form a foot; the foot's sole box is fitted to them
+#: links whose collision meshes are the feet's soles
 FOOT_LINKS = ("leg_ank2_r0", "leg_ank2_r1")
-
-
 SOLE_THICKNESS = 0.01  # m
+#: a foot mesh's vertices within this height [m] of its lowest one (standing at qpos0) form the sole
+SOLE_BAND = 0.002
 
 
-def _add_floor_contacts(spec: mujoco.MjSpec) -> None:
-    """A floor plane at z = 0 and, per foot, a flat sole box fitted to the bounds (in the ankle
-    frame) of the foot's fitted primitives (ankle, heel, toes): the only geoms touching the floor.
-    The separate heel/toe primitives of the armar meshes give point contacts that let the robot
-    rock; one sole per foot gives the flat support polygon of the real feet."""
+def _add_floor_contacts(spec: mujoco.MjSpec, foot_vertices: dict[str, np.ndarray]) -> None:
+    """A floor plane at z = 0 and, per foot, a flat sole box under the bottom of the foot's
+    collision mesh: the world-aligned bounds (at ``qpos0``, all joints 0, feet flat) of the
+    vertices ``foot_vertices[link] [k, 3]`` (link frame) within :data:`SOLE_BAND` of the lowest
+    one, its underside at that lowest point. These are the only geoms touching the floor.
+
+    The sole is the support polygon of the papers' simulator, which collides the meshes: there
+    the heel and toe links hover 3-4 mm above the floor and touch it only when the foot tilts,
+    and the mesh's underside (x -0.055..0.148 m on ARMAR-4) carries the robot. A sole fitted to
+    the bounds of ankle, heel and toes (this model until the comparison with PyBullet, x
+    -0.065..0.196 m) made the robot far too hard to tip over
+    (``scripts/armar4_pybullet_fidelity.py``)."""
     probe = spec.copy().compile()
     data = mujoco.MjData(probe)
     mujoco.mj_kinematics(probe, data)  # qpos0: all joints at 0, feet flat
     for link in FOOT_LINKS:
+        if link not in foot_vertices:
+            raise ValueError(f"foot link {link!r}: no collision mesh vertices")
         body = probe.body(link).id
-        corners = [_geom_corners_local(probe, g) for g in range(probe.ngeom) if probe.geom_bodyid[g] == body]
-        if not corners:
-            raise ValueError(f"foot link {link!r} has no collision geoms")
         rot, origin = data.xmat[body].reshape(3, 3), data.xpos[body]
-        world = np.concatenate(corners) @ rot.T + origin  # world-aligned bounds of the foot
-        lo, hi = world.min(axis=0), world.max(axis=0)
+        world = np.asarray(foot_vertices[link], np.float64) @ rot.T + origin
+        bottom = world[world[:, 2] <= world[:, 2].min() + SOLE_BAND]
+        lo, hi = bottom.min(axis=0), bottom.max(axis=0)
         half = [(hi[0] - lo[0]) / 2, (hi[1] - lo[1]) / 2, SOLE_THICKNESS / 2]
-        center = np.array([(hi[0] + lo[0]) / 2, (hi[1] + lo[1]) / 2, lo[2] + SOLE_THICKNESS / 2])
+        center = np.array([(hi[0] + lo[0]) / 2, (hi[1] + lo[1]) / 2, world[:, 2].min() + SOLE_THICKNESS / 2])
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, rot.T.copy().ravel())
         spec.body(link).add_geom(name=f"sole_{link}", type=mujoco.mjtGeom.mjGEOM_BOX, size=half,
@@ -54,21 +61,6 @@ def _add_floor_contacts(spec: mujoco.MjSpec) -> None:
                                  group=2, friction=[1.0, 0.005, 0.0001])
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
                             contype=0, conaffinity=1, condim=3, friction=[1.0, 0.005, 0.0001])
-
-
-def _geom_corners_local(model: mujoco.MjModel, g: int) -> np.ndarray:
-    """``[8, 3]`` corners of a box/capsule/sphere geom's bounding box, in its body frame [m]."""
-    size = model.geom_size[g]
-    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
-        half = size
-    elif model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE:
-        half = np.array([size[0], size[0], size[1] + size[0]])
-    else:
-        half = np.full(3, size[0])
-    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, model.geom_quat[g])
-    return model.geom_pos[g] + (signs * half) @ mat.reshape(3, 3).T
 
 
 def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool) -> None:

@@ -116,6 +116,30 @@ def resolve_mesh_path(filename: str, urdf_dir: Path) -> Path:
     return path if path.is_absolute() else urdf_dir / path
 
 
+def link_mesh_vertices(urdf, urdf_path: str | Path, link: str) -> np.ndarray:
+    """Vertices ``[k, 3]`` [m] of all collision meshes of ``link``, in the link frame (each
+    mesh's scale and collision origin applied); ``ValueError`` if the link has none on disk."""
+    import trimesh
+
+    if link not in urdf.link_map:
+        raise ValueError(f"link {link!r} not in the URDF {urdf_path}")
+    parts = []
+    for collision in urdf.link_map[link].collisions:
+        mesh = collision.geometry.mesh
+        if mesh is None:
+            continue
+        path = resolve_mesh_path(mesh.filename, Path(urdf_path).parent)
+        if not path.is_file():
+            continue
+        scale = np.ones(3) if mesh.scale is None else np.broadcast_to(np.asarray(mesh.scale, float), (3,))
+        vertices = np.asarray(trimesh.load(str(path), force="mesh").vertices, np.float64) * scale
+        origin = np.eye(4) if collision.origin is None else np.asarray(collision.origin, np.float64)
+        parts.append(vertices @ origin[:3, :3].T + origin[:3, 3])
+    if not parts:
+        raise ValueError(f"link {link!r} of {urdf_path} has no collision mesh on disk")
+    return np.concatenate(parts)
+
+
 @dataclasses.dataclass(frozen=True)
 class Primitive:
     """A fitted collision primitive in its link frame: ``type`` ``box`` (size = half extents)

@@ -1,0 +1,96 @@
+"""ARMAR-4 with its legs held: does our model tilt and fall where the papers' simulator does?
+
+Replays the same upper-body setpoint trajectories (240 Hz) on the floating-base ARMAR-4 (legs
+held at their start pose by their servos) in our model and in PyBullet with the papers' settings
+(the oracle: ``tests/pybullet_armar4.py``) and compares the pelvis tilt (angle of the base's z
+axis to the vertical). Motions, all starting at rest from the robot's start pose:
+
+* ``toppra``: the ARMAR-4 target-point test paths traversed time-optimally (TOPP-RA with the
+  velocity and acceleration limits; no jerk limit, so faster than any policy), then held 1 s;
+* ``bang``: bang-bang actions (+-1 per joint, each sign kept for 1-6 decision steps) mapped into
+  the safe acceleration range: jerk-limited, at the limits;
+* ``random``: the random agent (actions U(-1, 1)), the gentlest.
+
+A motion "falls" when the tilt exceeds the balance task's ``FALL_TILT`` (0.52 rad). The peak
+ratio compares the largest tilt change from rest (PyBullet's mesh feet stand 0.006 rad tilted)
+over the motions neither model falls in.
+
+    python scripts/armar4_pybullet_fidelity.py [--motions 40] [--paths 20] [--seconds 4] [--json out.json]
+
+PyBullet is a test extra (``pip install -e ".[test]"``), never used in training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import mjx_pathtrack  # noqa: E402
+
+mjx_pathtrack.prepare_xla()
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mjx_pathtrack.core import limits as L  # noqa: E402
+from mjx_pathtrack.envs.tasks.humanoid_balance import FALL_TILT  # noqa: E402
+from mjx_pathtrack.paths import datasets  # noqa: E402
+from mjx_pathtrack.robots.registry import load_robot  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from pybullet_armar4 import HZ, PyBulletArmar4, agent_motions, mujoco_tilts, toppra_motion  # noqa: E402
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--motions", type=int, default=10, help="bang-bang and random motions each")
+    parser.add_argument("--paths", type=int, default=20, help="target-point test paths (TOPP-RA)")
+    parser.add_argument("--seconds", type=float, default=4.0, help="length of the bang-bang and random motions")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", help="write the per-motion peak tilts here")
+    args = parser.parse_args()
+    robot = load_robot("armar4_legs")
+    upper = np.flatnonzero(robot.path_mask)
+    lim = robot.limits
+    sub = L.JointLimits(*(np.asarray(x)[upper] for x in (lim.pos_min, lim.pos_max, lim.vel, lim.acc, lim.jerk)))
+    motions = []
+    for i, knots in enumerate(datasets.load_split("armar4", "target_point", "test")[:args.paths]):
+        motions.append(("toppra", i, *toppra_motion(np.asarray(knots, np.float64), np.asarray(sub.vel), np.asarray(sub.acc))))
+    p0 = np.asarray(robot.q0)[upper]
+    for kind, bang, seed in (("bang", True, args.seed), ("random", False, args.seed + 1)):
+        qs, vs = agent_motions(sub, p0, jax.random.PRNGKey(seed), args.motions, args.seconds, bang)
+        motions += [(kind, i, q, v) for i, (q, v) in enumerate(zip(qs, vs))]
+    bullet = PyBulletArmar4(robot)
+    rows = []
+    t0 = time.monotonic()
+    for kind, i, q, v in motions:
+        ours, theirs = mujoco_tilts(robot, upper, q, v), bullet.tilts(upper, q, v)
+        rows.append({"kind": kind, "index": i, "seconds": len(q) / HZ, "peak_ours": float(ours.max()),
+                     "peak_pybullet": float(theirs.max()), "rest_ours": float(ours[0]), "rest_pybullet": float(theirs[0]),
+                     "fell_ours": bool(ours.max() > FALL_TILT), "fell_pybullet": bool(theirs.max() > FALL_TILT)})
+        r = rows[-1]
+        print(f"{kind:7s}{i:3d}  {r['seconds']:5.2f} s  peak tilt ours {r['peak_ours']:.4f}  pybullet "
+              f"{r['peak_pybullet']:.4f} rad", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    print(f"\n{len(rows)} motions in {time.monotonic() - t0:.0f} s; fall threshold {FALL_TILT} rad; tilt at rest "
+          f"ours {np.mean([r['rest_ours'] for r in rows]):.4f}, pybullet {np.mean([r['rest_pybullet'] for r in rows]):.4f} rad")
+    print("peak ratio: median over the motions neither falls in of (peak - tilt at rest), ours / pybullet")
+    for kind in ("toppra", "bang", "random", None):
+        sel = [r for r in rows if r["kind"] == kind or kind is None]
+        if not sel:
+            continue
+        agree = np.mean([r["fell_ours"] == r["fell_pybullet"] for r in sel])
+        up = [r for r in sel if not (r["fell_ours"] or r["fell_pybullet"])]
+        rise = lambda r, who: max(r[f"peak_{who}"] - r[f"rest_{who}"], 1e-6)  # noqa: E731
+        ratio = np.median([rise(r, "ours") / rise(r, "pybullet") for r in up])
+        print(f"{kind or 'all':7s} {len(sel):3d} motions   falls ours {np.mean([r['fell_ours'] for r in sel]):4.0%}  pybullet "
+              f"{np.mean([r['fell_pybullet'] for r in sel]):4.0%}   same outcome {agree:4.0%}   peak ratio {ratio:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
