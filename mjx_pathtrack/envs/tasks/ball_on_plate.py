@@ -256,7 +256,7 @@ def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) ->
 #: motion prescribed by the setpoints and only the plate and the ball in MJX
 #: (:class:`~mjx_pathtrack.envs.tasks.plate_executor.PrescribedPlateExecutor`, 1.2x the
 #: reference's speed); ``"rolling"``, the plate prescribed and the ball rolling on it in pure JAX
-#: (:class:`~mjx_pathtrack.envs.tasks.rolling_ball.RollingBallExecutor`, ~20x; the preset's)
+#: (:class:`~mjx_pathtrack.envs.tasks.rolling_ball.RollingBallExecutor`, 18-21x; the preset's)
 PHYSICS = ("arm", "plate", "rolling")
 
 
