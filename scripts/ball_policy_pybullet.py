@@ -4,9 +4,9 @@ Runs the trained policy (deterministic) on the ball task's test paths in the rol
 trained in, records the plate motion of every physics step, and replays it in PyBullet with the
 same balls (``tests/pybullet_ball.py``: 240 Hz, 50 solver iterations). The policy does not see
 PyBullet's ball (open loop), so this asks: under the motions the policy makes, does the papers'
-simulator's ball fall where the training scene's does? (The full-arm MJX scene, evaluated closed
-loop with ``python evaluate.py RUN --ball-physics arm``, lets the ball creep off slightly tilted
-plates where both of these hold it: docs/results.md "Ball on plate".)
+simulator's ball fall where the training scene's does? Like the training scene, the replay
+prescribes the plate from the setpoints, so the arm's servo lag is left out (the full-arm MJX
+scene has it: ``python evaluate.py RUN --ball-physics arm``; docs/results.md "Ball on plate").
 
     python scripts/ball_policy_pybullet.py runs/ball [--episodes 200]
 

@@ -24,7 +24,7 @@ Model (per environment, at the physics step ``h`` = 1/240 s of the MJX scenes):
 
 Validated in ``tests/envs/test_ball_physics.py`` (same safe motions, same balls) against PyBullet
 with the papers' settings (1.0 mm mean difference, same falls in 200 of 200 episodes) and against
-the full-arm MJX scene (~5 mm: MuJoCo's soft rolling friction lets the ball creep where the
+the full-arm MJX scene (3.9 mm: MuJoCo's soft rolling friction lets the ball creep where the
 torque limit holds it; same falls). The ball's reported position is the MJX sensor's: the ball centre in the plate
 frame at the start of the step's last physics step.
 """
