@@ -96,6 +96,23 @@ def test_the_prescribed_plate_follows_the_arm(rollouts):
     assert np.abs(rollouts["arm"][1] - rollouts["rolling"][1]).max() < 1e-3
 
 
+def test_pybullet_arm_carries_the_plate_where_the_scene_does():
+    # the oracle's iiwa + plate URDF (pybullet_ball.replay_arm) against the MuJoCo scene's plate site
+    from mjx_pathtrack.paths import datasets
+    from mjx_pathtrack.robots import registry
+
+    robot = registry.load_robot("iiwa_ball")
+    data = mujoco.MjData(robot.mj_model)
+    site = robot.mj_model.site("plate").id
+    for knots in datasets.load_split("iiwa", "ball_balancing", "test")[:3]:
+        q = np.asarray(knots[len(knots) // 2], np.float64)
+        data.qpos[robot.qpos_adr] = q
+        mujoco.mj_kinematics(robot.mj_model, data)
+        surface, rot = pybullet_ball.arm_plate_pose(str(registry.IIWA_URDF), robot.joint_names, q)
+        np.testing.assert_allclose(surface, data.site_xpos[site], atol=1e-5)
+        np.testing.assert_allclose(rot, data.site_xmat[site].reshape(3, 3), atol=1e-5)
+
+
 def test_rolling_ball_agrees_with_the_papers_simulator(rollouts):
     diff, same = _compare(rollouts, "pybullet", "rolling")
     assert diff < 2e-3, f"mean position difference {1e3 * diff:.2f} mm"  # measured 1.03 mm
