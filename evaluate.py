@@ -102,15 +102,16 @@ def main(argv=None) -> int:
                                              args.timing_decisions, not args.no_toppra, args.jerk_optimum, cache,
                                              max(args.workers, 1))
     episode = min(max(args.plot_episode, 0), len(first.s_start) - 1)
+    ball_task = source.config.task == "ball_on_plate"
+    whole = args.full_paths or ball_task  # the ball task always runs whole paths
     meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
-            "seed": args.seed, "full_paths": args.full_paths or source.config.task == "ball_on_plate",
+            "seed": args.seed, "full_paths": whole,
             "actions": "sampled" if args.stochastic else "deterministic",
             "terminate_deviation": source.config.env.terminate_deviation, "end_tolerance": source.config.env.end_tolerance,
             "end_braking": source.config.env.end_braking, "end_stop": source.config.env.end_stop,
             "end_knot_tolerance": source.config.env.end_knot_tolerance, "ball_physics": source.config.ball_on_plate.physics,
             "plot_episode": episode}
-    whole = args.full_paths or source.config.task == "ball_on_plate"  # the ball task always runs whole paths
-    physics = f", {source.config.ball_on_plate.physics} ball" if source.config.task == "ball_on_plate" else ""
+    physics = f", {source.config.ball_on_plate.physics} ball" if ball_task else ""
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if whole else f'sub-paths, seed {args.seed}'}"
              f"{physics}{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))

@@ -58,10 +58,9 @@ def main() -> int:
     indices = np.arange(args.episodes) % len(env.paths.n_knots)
     rng = jax.random.PRNGKey(args.seed)
     ro = E.rollout(env, source.policy, rng, indices)
-    start = jax.vmap(env.reset)(jax.random.split(rng, len(indices) + 1)[1:], jax.numpy.asarray(indices)).pipeline_state.executor
+    start = E.reset_episodes(env, rng, len(indices), jax.numpy.asarray(indices, jax.numpy.int32))[0].pipeline_state.executor
     radius, mass = (np.asarray(x) for x in jax.vmap(B.sample_ball)(start.key))
-    friction = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 1), (2,), minval=BP.FRICTION_RANGE[0],
-                                                                maxval=BP.FRICTION_RANGE[1]))(start.key))
+    spin, roll = (np.asarray(x) for x in jax.vmap(BP.sample_friction)(start.key))
     xy = np.asarray(start.ball)[:, :2]
     fell_rolling = np.asarray(ro.metrics.task_failed) > 0
     plate_pose = jax.jit(jax.vmap(env.executor.plate_pose))
@@ -69,8 +68,8 @@ def main() -> int:
     fell_pybullet, t0 = [], time.monotonic()
     for b in range(len(indices)):
         q = E.executed_polyline(ro, b)  # setpoints of every physics step the episode ran
-        ball = dict(radius=float(radius[b]), mass=float(mass[b]), mu_roll=float(friction[b, 1]),
-                    mu_spin=float(friction[b, 0]), substeps=env.executor.substeps)
+        ball = dict(radius=float(radius[b]), mass=float(mass[b]), mu_roll=float(roll[b]),
+                    mu_spin=float(spin[b]), substeps=env.executor.substeps)
         if args.arm:
             seen = pybullet_ball.replay_arm(str(IIWA_URDF), env.executor.robot.joint_names, np.asarray(q, np.float64),
                                             xy[b], **ball)

@@ -43,15 +43,20 @@ def _client(step: float):
         pb.disconnect(c)
 
 
-def _bodies(c: int, plate_mass: float, radius: float, mass: float, mu_roll: float, mu_spin: float) -> tuple[int, int]:
-    box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=_HALF.tolist(), physicsClientId=c)
-    plate = pb.createMultiBody(plate_mass, box, physicsClientId=c)
-    pb.changeDynamics(plate, -1, lateralFriction=1.0, physicsClientId=c)
+def _ball(c: int, radius: float, mass: float, mu_roll: float, mu_spin: float) -> int:
+    """The episode's ball (lateral friction 1) in client ``c``."""
     sphere = pb.createCollisionShape(pb.GEOM_SPHERE, radius=radius, physicsClientId=c)
     ball = pb.createMultiBody(mass, sphere, physicsClientId=c)
     pb.changeDynamics(ball, -1, lateralFriction=1.0, rollingFriction=mu_roll, spinningFriction=mu_spin,
                       physicsClientId=c)
-    return plate, ball
+    return ball
+
+
+def _bodies(c: int, plate_mass: float, radius: float, mass: float, mu_roll: float, mu_spin: float) -> tuple[int, int]:
+    box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=_HALF.tolist(), physicsClientId=c)
+    plate = pb.createMultiBody(plate_mass, box, physicsClientId=c)
+    pb.changeDynamics(plate, -1, lateralFriction=1.0, physicsClientId=c)
+    return plate, _ball(c, radius, mass, mu_roll, mu_spin)
 
 
 def _xyzw(rot: np.ndarray) -> list[float]:
@@ -171,10 +176,7 @@ def replay_arm(iiwa_urdf: str, joint_names, q: np.ndarray, start_xy: np.ndarray,
         pb.changeDynamics(arm, plate, lateralFriction=1.0, physicsClientId=c)
         for j, qj in zip(joints, q[0]):
             pb.resetJointState(arm, j, float(qj), 0.0, physicsClientId=c)
-        sphere = pb.createCollisionShape(pb.GEOM_SPHERE, radius=radius, physicsClientId=c)
-        ball = pb.createMultiBody(mass, sphere, physicsClientId=c)
-        pb.changeDynamics(ball, -1, lateralFriction=1.0, rollingFriction=mu_roll, spinningFriction=mu_spin,
-                          physicsClientId=c)
+        ball = _ball(c, radius, mass, mu_roll, mu_spin)
         o, rot = _plate_surface(c, arm, plate)
         pb.resetBasePositionAndOrientation(ball, (o + rot @ np.array([start_xy[0], start_xy[1], radius])).tolist(),
                                            [0, 0, 0, 1], physicsClientId=c)

@@ -47,14 +47,22 @@ class EpisodeMetrics(NamedTuple):
     task_failed: Array
 
 
+def reset_episodes(env: PathTrackingEnv, rng: Array, n_episodes: int, path_indices: Array | None = None):
+    """``(state [B], steps_key)``: the resets of the episodes :func:`evaluate` (``path_indices``
+    None: random paths) and :func:`rollout` (int ``[B]`` dataset paths) run for ``rng``, and the key
+    their steps' keys are split from."""
+    reset_keys = jax.random.split(rng, n_episodes + 1)
+    args = (reset_keys[1:],) if path_indices is None else (reset_keys[1:], path_indices)
+    return jax.vmap(env.reset)(*args), reset_keys[0]
+
+
 def evaluate(env: PathTrackingEnv, policy: Policy, rng: Array, n_episodes: int,
              max_steps: int | None = None) -> EpisodeMetrics:
     """Run ``n_episodes`` episodes (reset keys split from ``rng``) until done or ``max_steps``
     (default: the config's longest episode); metrics after ``done`` are frozen."""
     max_steps = env.config.max_episode_steps() + 1 if max_steps is None else max_steps
-    reset_keys = jax.random.split(rng, n_episodes + 1)
-    state = jax.vmap(env.reset)(reset_keys[1:])
-    metrics, _, _ = run_episodes(env, policy, state, jax.random.split(reset_keys[0], max_steps), record=False)
+    state, steps_key = reset_episodes(env, rng, n_episodes)
+    metrics, _, _ = run_episodes(env, policy, state, jax.random.split(steps_key, max_steps), record=False)
     return metrics
 
 
@@ -242,9 +250,8 @@ def rollout(env: PathTrackingEnv, policy: Policy, rng: Array, path_indices, max_
 
     @jax.jit
     def run(rng, indices):
-        reset_keys = jax.random.split(rng, n + 1)
-        state = jax.vmap(env.reset)(reset_keys[1:], indices)
-        metrics, done, records = run_episodes(env, policy, state, jax.random.split(reset_keys[0], max_steps), record=True)
+        state, steps_key = reset_episodes(env, rng, n, indices)
+        metrics, done, records = run_episodes(env, policy, state, jax.random.split(steps_key, max_steps), record=True)
         track = state.pipeline_state
         paths = jax.vmap(env.episode_path)(track)
         return metrics, done, records, track.p, track.s_start, paths

@@ -4,7 +4,8 @@
   papers' board), mass 0.508 kg (the papers' board). Site ``plate`` at the centre of its top
   surface: x along the plate's long side, z the surface normal.
 * Ball: free body ``ball`` with a sphere geom; default radius 28 mm and mass 0.1 kg; friction 1
-  (the papers' lateral friction; rolling/spinning friction are not modelled: ``condim = 3``).
+  (the papers' lateral friction); ``condim = 3`` here, the ball task turns on rolling and
+  spinning friction (``condim = 6``, :class:`~mjx_pathtrack.envs.tasks.ball_on_plate.BallExecutor`).
   Only ball-plate contacts exist (``contype``/``conaffinity`` bit 2).
 * Physics option ``impratio`` = :data:`IMPRATIO` (1000), so that the ball's rolling friction acts.
 * Sensor ``ball_in_plate`` (``framepos`` of site ``ball`` in site ``plate``): ball centre in the

@@ -45,7 +45,7 @@ from mujoco import mjx
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.core.limits import JointLimits
 from mjx_pathtrack.robots.urdf_import import UrdfJoint, link_mesh_vertices, load_urdf, urdf_to_spec
-from mjx_pathtrack.robots.scene import _add_floor_contacts, _add_servos, _add_target_sites, _configure_solver, _height_above_floor, _tune_servos
+from mjx_pathtrack.robots.scene import FOOT_LINKS, _add_floor_contacts, _add_servos, _add_target_sites, _configure_solver, _height_above_floor, _tune_servos
 
 Array = jax.Array
 
@@ -273,8 +273,6 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
 
         ball_scene.add_plate_and_ball(spec)
     if spec_def.floating:
-        from mjx_pathtrack.robots.scene import FOOT_LINKS
-
         _add_floor_contacts(spec, {link: link_mesh_vertices(urdf, urdf_path, link) for link in FOOT_LINKS})
     _configure_solver(spec, has_contacts=spec_def.ball or spec_def.floating)
     names = [j.name for j in joints]

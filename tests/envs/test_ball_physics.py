@@ -69,11 +69,10 @@ def _pybullet(env, start, kin):
     surface, rot = jax.vmap(jax.vmap(executor.plate_pose))(q)  # [K+1, E, ...]
     surface, rot = np.asarray(surface, np.float64), np.asarray(rot, np.float64)
     radius, mass = (np.asarray(x) for x in jax.vmap(B.sample_ball)(start.key))
-    friction = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 1), (2,), minval=BP.FRICTION_RANGE[0],
-                                                                maxval=BP.FRICTION_RANGE[1]))(start.key))
+    spin, roll = (np.asarray(x) for x in jax.vmap(BP.sample_friction)(start.key))
     xy = np.asarray(start.ball)[:, :2]
     balls = np.stack([pybullet_ball.replay(surface[:, e], rot[:, e], xy[e], float(radius[e]), float(mass[e]),
-                                           mu_roll=float(friction[e, 1]), mu_spin=float(friction[e, 0]),
+                                           mu_roll=float(roll[e]), mu_spin=float(spin[e]),
                                            substeps=substeps) for e in range(EPISODES)], axis=1)
     rel = balls[..., :2] / np.asarray(BP.R.BALL_HALF_RANGE)
     return [balls, None, np.any(np.abs(rel) >= 1.0, axis=-1) | (balls[..., 2] < 0.0)]

@@ -53,6 +53,16 @@ TARGET_RANGE_HI = (1.0, 1.0, 1.3)
 RELATIVE_RANGE = 0.1
 #: rolling and torsional friction range of the ball (docs/robots.md §1) [m]
 FRICTION_RANGE = (1e-4, 6e-4)
+
+
+def sample_friction(key: Array) -> tuple[Array, Array]:
+    """The episode's torsional and rolling friction ``(mu_spin, mu_roll)`` [m], each ~ U(
+    :data:`FRICTION_RANGE`), drawn from the ball's ``key`` (its radius and mass come from the same
+    key: :func:`~mjx_pathtrack.robots.ball_scene.sample_ball`). Pure JAX, scalars."""
+    spin, roll = jax.random.uniform(jax.random.fold_in(key, 1), (2,), minval=FRICTION_RANGE[0], maxval=FRICTION_RANGE[1])
+    return spin, roll
+
+
 #: dataset of the task (splines/iiwa/ball_balancing)
 DATASET = ("iiwa", "ball_balancing")
 
@@ -138,8 +148,7 @@ class BallExecutor:
     def model(self, key: Array):
         """The episode's ``mjx.Model`` (ball radius, mass, friction drawn from ``key``) and the radius."""
         model, radius, _ = B.randomize_ball(self.mjx_model, key, *self.ids)
-        spin, roll = jax.random.uniform(jax.random.fold_in(key, 1), (2,), minval=FRICTION_RANGE[0],
-                                        maxval=FRICTION_RANGE[1])
+        spin, roll = sample_friction(key)
         friction = model.geom_friction.at[self.ids[1]].set(jnp.stack([1.0, spin, roll]))
         return model.tree_replace({"geom_friction": friction}), radius
 

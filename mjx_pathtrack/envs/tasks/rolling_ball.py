@@ -41,7 +41,7 @@ import mujoco
 from mujoco.mjx._src import math as mjx_math
 
 from mjx_pathtrack.core import limits as L
-from mjx_pathtrack.envs.tasks.ball_on_plate import FRICTION_RANGE, BallExecutor, BallState
+from mjx_pathtrack.envs.tasks.ball_on_plate import BallExecutor, BallState, sample_friction
 from mjx_pathtrack.robots import ball_scene as B
 
 Array = jax.Array
@@ -146,8 +146,7 @@ class RollingBallExecutor(BallExecutor):
         """The episode's ball parameters from ``key``, drawn exactly as :class:`BallExecutor` does
         (:func:`~mjx_pathtrack.robots.ball_scene.sample_ball`, then the frictions), at rest at the origin."""
         radius, mass = B.sample_ball(key)
-        spin, roll = jax.random.uniform(jax.random.fold_in(key, 1), (2,), minval=FRICTION_RANGE[0],
-                                        maxval=FRICTION_RANGE[1])
+        spin, roll = sample_friction(key)
         zero = jnp.zeros(3)
         return BallBody(zero, zero, zero, radius, mass, spin, roll)
 
