@@ -42,7 +42,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from mjx_pathtrack.robots import iiwa
+from mjx_pathtrack.robots import ball_scene, iiwa
 from mjx_pathtrack.core.limits import JointLimits
 from mjx_pathtrack.robots.urdf_import import UrdfJoint, link_mesh_vertices, load_urdf, urdf_to_spec
 from mjx_pathtrack.robots.scene import FOOT_LINKS, _add_floor_contacts, _add_servos, _add_target_sites, _configure_solver, _height_above_floor, _tune_servos
@@ -269,12 +269,11 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
         for body in spec.bodies[1:]:
             body.gravcomp = 1.0
     if spec_def.ball:
-        from mjx_pathtrack.robots import ball_scene
-
         ball_scene.add_plate_and_ball(spec)
     if spec_def.floating:
         _add_floor_contacts(spec, {link: link_mesh_vertices(urdf, urdf_path, link) for link in FOOT_LINKS})
-    _configure_solver(spec, has_contacts=spec_def.ball or spec_def.floating)
+    _configure_solver(spec, has_contacts=spec_def.ball or spec_def.floating,
+                      iterations=ball_scene.ITERATIONS if spec_def.ball else 4)
     names = [j.name for j in joints]
     _add_servos(spec, names)
     model = spec.compile()
@@ -286,8 +285,6 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
     if spec_def.floating:
         qpos0[2] += _height_above_floor(model, qpos0)
     if spec_def.ball:
-        from mjx_pathtrack.robots import ball_scene
-
         qpos0 = ball_scene.ball_on_plate_qpos(model, qpos0)
     _tune_servos(model, qpos0, qpos_adr, dof_adr, np.array([j.lower for j in joints]),
                  np.array([j.upper for j in joints]), opts["servo_omega"], opts["servo_zeta"])

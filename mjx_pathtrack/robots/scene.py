@@ -63,14 +63,14 @@ def _add_floor_contacts(spec: mujoco.MjSpec, foot_vertices: dict[str, np.ndarray
                             contype=0, conaffinity=1, condim=3, friction=[1.0, 0.005, 0.0001])
 
 
-def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool) -> None:
+def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool, iterations: int = 4) -> None:
     """Batched-MJX-friendly solver settings: no constraints at all when the scene has no contacts
-    (``has_contacts`` false: no ball, no floating base); otherwise few Newton iterations
-    (measured: the vmapped solver dominates the step cost)."""
+    (``has_contacts`` false: no ball, no floating base); otherwise few (``iterations``) Newton
+    iterations (measured: the vmapped solver dominates the step cost)."""
     if not has_contacts:
         spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
     else:
-        spec.option.iterations = 4
+        spec.option.iterations = iterations
         spec.option.ls_iterations = 8
     # joint-limit constraints are off per joint already; equality constraints do not exist
     spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT

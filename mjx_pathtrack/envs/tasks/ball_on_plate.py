@@ -314,7 +314,7 @@ class TaskConfig:
 #: ``train.py --task ball_on_plate``: the papers' ball-net settings on the rolling ball, with the
 #: default recipe's PPO sizes and 16 M steps (~15 min alone on 2 CPU cores; with R_ball the
 #: deterministic policy reaches the path end in 76 % of 128 test paths at 16 M steps); ``--preset
-#: paper`` trains 40 M steps: 96.0 % end reached, ball fell in 2.0 % in the training scene, 45.5 %
+#: paper`` trains 40 M steps: 96.0 % end reached, ball fell in 2.0 % in the training scene, 4.5 %
 #: in the full-arm MJX scene (docs/results.md "Ball on plate") (flat option names,
 #: :data:`mjx_pathtrack.config.run.FLAT_NAMES`)
 PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", executor="mjx", n_next=4, alpha=4.0,
