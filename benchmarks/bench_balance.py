@@ -4,12 +4,15 @@ Run: python benchmarks/bench_balance.py [--batch 1024] [--repeats 3] [--legs fix
 
 Measures, in one run and at the same batch size, the jitted, vmapped ``env.step`` of
 
-* the balance environment (:mod:`mjx_pathtrack.envs.tasks.humanoid_balance`, ``armar4_legs``: 30
-  servo-controlled joints, floating base, two soles on a floor, 24 physics steps per decision step),
 * the reference: the iiwa path-tracking environment with the MJX executor (7 joints, no contacts),
+* the balance environment (:mod:`mjx_pathtrack.envs.tasks.humanoid_balance`, floating base, two
+  soles on a floor, 24 physics steps per decision step) on ``armar4_legs`` (30 servo-controlled
+  joints; with ``--legs fixed`` the 12 leg joints are held at their pose by their servos),
+* with ``--legs fixed`` (the default) also the balance environment as ``train.py`` builds it for
+  fixed legs: ``armar4_standing``, the legs welded (18 joints, 24 degrees of freedom instead of 36),
 
-and prints decision steps/s (env steps), physics steps/s (= decision steps/s x 24) and the ratio
-balance / iiwa. Paths are short synthetic upper-body / iiwa paths around the initial pose (the
+and prints decision steps/s (env steps), physics steps/s (= decision steps/s x 24) and the ratios
+balance / iiwa and welded / held legs. Paths are short synthetic upper-body / iiwa paths around the initial pose (the
 cost of a step does not depend on them); actions are uniform random in [-1, 1] (fixed key), so
 some robots fall during the timed steps, as during training. Compilation is excluded.
 """
@@ -69,22 +72,30 @@ def main() -> None:
     parser.add_argument("--legs", default="fixed", choices=H.LEGS)
     args = parser.parse_args()
 
-    armar = load_robot(H.ROBOT)
-    balance = H.HumanoidBalanceEnv(armar, synthetic_paths(armar), 0.5,
-                                   EnvConfig(duration=20.0, reward=H.BALANCE_WEIGHTS), H.BalanceOptions(legs=args.legs))
+    def balance(name: str):
+        armar = load_robot(name)
+        return H.HumanoidBalanceEnv(armar, synthetic_paths(armar), 0.5, EnvConfig(duration=20.0, reward=H.BALANCE_WEIGHTS),
+                                    H.BalanceOptions(legs=args.legs))
+
     iiwa = load_robot("iiwa")
     reference = PathTrackingEnv(iiwa.limits, synthetic_paths(iiwa), 0.93, EnvConfig(), home=iiwa.q0,
                                 executor=MjxExecutor(iiwa))
+    held = "held" if args.legs == "fixed" else "controlled"
     rows = [("iiwa, mjx executor (reference)", measure(reference, args.batch, args.repeats)),
-            (f"ARMAR-4 balance, legs {args.legs}", measure(balance, args.batch, args.repeats))]
+            (f"ARMAR-4 balance, legs {held}", measure(balance(H.ROBOT), args.batch, args.repeats))]
+    if args.legs == "fixed":
+        rows.append(("ARMAR-4 balance, legs welded", measure(balance(H.STANDING_ROBOT), args.batch, args.repeats)))
     print(f"device: {jax.devices()[0].platform}  cores: {os.cpu_count()}  batch {args.batch}  "
           f"load average {os.getloadavg()[0]:.1f}  timed decision steps {args.repeats}")
     print(f"{'environment':<34}{'decision steps/s':>18}{'physics steps/s':>17}{'compile s':>11}")
     for name, r in rows:
         print(f"{name:<34}{r['decision_steps_per_s']:18,.0f}{r['physics_steps_per_s']:17,.0f}{r['compile_s']:11.1f}"
               + ("" if r["finite"] else "  NON-FINITE OBSERVATION"))
-    ratio = rows[1][1]["decision_steps_per_s"] / rows[0][1]["decision_steps_per_s"]
-    print(f"ratio ARMAR-4 balance / iiwa mjx: {ratio:.3f}")
+    rate = [r["decision_steps_per_s"] for _, r in rows]
+    print(f"ratio ARMAR-4 balance (legs {held}) / iiwa mjx: {rate[1] / rate[0]:.3f}")
+    if args.legs == "fixed":
+        print(f"ratio ARMAR-4 balance (legs welded) / iiwa mjx: {rate[2] / rate[0]:.3f}")
+        print(f"ratio legs welded / legs held (same states): {rate[2] / rate[1]:.2f}")
 
 
 if __name__ == "__main__":

@@ -16,6 +16,10 @@ ratio compares the largest tilt change from rest (PyBullet's mesh feet stand 0.0
 over the motions neither model falls in.
 
     python scripts/armar4_pybullet_fidelity.py [--motions 40] [--paths 20] [--seconds 4] [--json out.json]
+        [--model armar4_legs armar4_standing armar4_standing@120]
+
+``--model`` names our models to compare (registry robots; ``@HZ``: physics rate instead of 240
+Hz): ``armar4_legs`` (legs held by their servos, the default), ``armar4_standing`` (legs welded).
 
 PyBullet is a test extra (``pip install -e ".[test]"``), never used in training.
 """
@@ -51,8 +55,14 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=4.0, help="length of the bang-bang and random motions")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", help="write the per-motion peak tilts here")
+    parser.add_argument("--model", nargs="+", default=["armar4_legs"],
+                        help="our models: registry robot names, optionally @HZ (physics rate)")
     args = parser.parse_args()
-    robot = load_robot("armar4_legs")
+    ours_models = {}
+    for spec in args.model:
+        name, _, hz = spec.partition("@")
+        ours_models[spec] = load_robot(name, **({"sim_dt": 1.0 / float(hz)} if hz else {}))
+    robot = load_robot("armar4_legs")  # motions and the oracle: the 18 upper-body joints of the full robot
     upper = np.flatnonzero(robot.path_mask)
     lim = robot.limits
     sub = L.JointLimits(*(np.asarray(x)[upper] for x in (lim.pos_min, lim.pos_max, lim.vel, lim.acc, lim.jerk)))
@@ -67,28 +77,34 @@ def main() -> int:
     rows = []
     t0 = time.monotonic()
     for kind, i, q, v in motions:
-        ours, theirs = mujoco_tilts(robot, upper, q, v), bullet.tilts(upper, q, v)
-        rows.append({"kind": kind, "index": i, "seconds": len(q) / HZ, "peak_ours": float(ours.max()),
-                     "peak_pybullet": float(theirs.max()), "rest_ours": float(ours[0]), "rest_pybullet": float(theirs[0]),
-                     "fell_ours": bool(ours.max() > FALL_TILT), "fell_pybullet": bool(theirs.max() > FALL_TILT)})
-        r = rows[-1]
-        print(f"{kind:7s}{i:3d}  {r['seconds']:5.2f} s  peak tilt ours {r['peak_ours']:.4f}  pybullet "
-              f"{r['peak_pybullet']:.4f} rad", flush=True)
+        theirs = bullet.tilts(upper, q, v)
+        row = {"kind": kind, "index": i, "seconds": len(q) / HZ, "peak_pybullet": float(theirs.max()),
+               "rest_pybullet": float(theirs[0]), "fell_pybullet": bool(theirs.max() > FALL_TILT)}
+        for spec, ours_robot in ours_models.items():
+            ours = mujoco_tilts(ours_robot, np.flatnonzero(ours_robot.path_mask), q, v)
+            row.update({f"peak_{spec}": float(ours.max()), f"rest_{spec}": float(ours[0]),
+                        f"fell_{spec}": bool(ours.max() > FALL_TILT)})
+        rows.append(row)
+        print(f"{kind:7s}{i:3d}  {row['seconds']:5.2f} s  peak tilt pybullet {row['peak_pybullet']:.4f}  "
+              + "  ".join(f"{spec} {row[f'peak_{spec}']:.4f}" for spec in ours_models) + " rad", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
-    print(f"\n{len(rows)} motions in {time.monotonic() - t0:.0f} s; fall threshold {FALL_TILT} rad; tilt at rest "
-          f"ours {np.mean([r['rest_ours'] for r in rows]):.4f}, pybullet {np.mean([r['rest_pybullet'] for r in rows]):.4f} rad")
+    print(f"\n{len(rows)} motions in {time.monotonic() - t0:.0f} s; fall threshold {FALL_TILT} rad; "
+          f"tilt at rest pybullet {np.mean([r['rest_pybullet'] for r in rows]):.4f} rad")
     print("peak ratio: median over the motions neither falls in of (peak - tilt at rest), ours / pybullet")
-    for kind in ("toppra", "bang", "random", None):
-        sel = [r for r in rows if r["kind"] == kind or kind is None]
-        if not sel:
-            continue
-        agree = np.mean([r["fell_ours"] == r["fell_pybullet"] for r in sel])
-        up = [r for r in sel if not (r["fell_ours"] or r["fell_pybullet"])]
-        rise = lambda r, who: max(r[f"peak_{who}"] - r[f"rest_{who}"], 1e-6)  # noqa: E731
-        ratio = np.median([rise(r, "ours") / rise(r, "pybullet") for r in up])
-        print(f"{kind or 'all':7s} {len(sel):3d} motions   falls ours {np.mean([r['fell_ours'] for r in sel]):4.0%}  pybullet "
-              f"{np.mean([r['fell_pybullet'] for r in sel]):4.0%}   same outcome {agree:4.0%}   peak ratio {ratio:.2f}")
+    for spec in ours_models:
+        print(f"ours = {spec} (tilt at rest {np.mean([r[f'rest_{spec}'] for r in rows]):.4f} rad)")
+        for kind in ("toppra", "bang", "random", None):
+            sel = [r for r in rows if r["kind"] == kind or kind is None]
+            if not sel:
+                continue
+            agree = np.mean([r[f"fell_{spec}"] == r["fell_pybullet"] for r in sel])
+            up = [r for r in sel if not (r[f"fell_{spec}"] or r["fell_pybullet"])]
+            rise = lambda r, who: max(r[f"peak_{who}"] - r[f"rest_{who}"], 1e-6)  # noqa: E731
+            ratio = np.median([rise(r, spec) / rise(r, "pybullet") for r in up])
+            print(f"  {kind or 'all':7s} {len(sel):3d} motions   falls ours {np.mean([r[f'fell_{spec}'] for r in sel]):4.0%}  "
+                  f"pybullet {np.mean([r['fell_pybullet'] for r in sel]):4.0%}   same outcome {agree:4.0%}   "
+                  f"peak ratio {ratio:.2f}")
     return 0
 
 

@@ -10,7 +10,8 @@ model and options MJX steps), both reporting the pelvis tilt per 240 Hz step.
   2 m and tilts by 0.64 rad in 3 s, so the papers' robot cannot have used that. Every replay
   starts from a fresh simulation (PyBullet's contact caches would otherwise carry one motion's
   history into the next).
-* Ours (:func:`mujoco_tilts`): ``load_robot("armar4_legs")``, legs held at ``q0`` by their servos.
+* Ours (:func:`mujoco_tilts`): ``load_robot("armar4_legs")``, legs held at ``q0`` by their servos,
+  or ``load_robot("armar4_standing")``, legs welded.
 * Motions from rest at the start pose: :func:`toppra_motion` (a path traversed time-optimally,
   velocity and acceleration limits, no jerk limit) and :func:`agent_motions` (random or
   bang-bang actions mapped into the safe acceleration range).
@@ -92,8 +93,13 @@ def tilt_of(z_axis: np.ndarray) -> float:
 
 
 def mujoco_tilts(robot, upper: np.ndarray, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Pelvis tilt [rad] per 240 Hz step of our model replaying upper-body setpoints ``q, v [K, m]``."""
+    """Pelvis tilt [rad] per physics step of our model replaying upper-body setpoints ``q, v [K, m]``
+    given at 240 Hz (a model whose time step is a multiple of 1/240 s takes every such sample)."""
     model, data = robot.mj_model, robot.mj_data()
+    every = int(round(model.opt.timestep * HZ))
+    if every < 1 or abs(every / HZ - model.opt.timestep) > 1e-9:
+        raise ValueError(f"{robot.name}: time step {model.opt.timestep} s is not a multiple of 1/{HZ} s")
+    q, v = q[::every], v[::every]
     q_all, v_all = np.asarray(robot.q0, np.float64).copy(), np.zeros(robot.n_joints)
     q_all[upper] = q[0]
     data.qpos[robot.qpos_adr] = q_all

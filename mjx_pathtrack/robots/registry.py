@@ -10,6 +10,8 @@ iiwa_ball      7       iiwa + plate + free ball (see :mod:`mjx_pathtrack.robots.
 armar6         17      ``armar6_front`` (PyPI ``armar``, CC BY-NC 4.0; extra ``humanoids``)
 armar4         18      ``armar4_fixed_hands_and_legs`` (legs welded, fixed base)
 armar4_legs    30      ``armar4_fixed_hands``: 12 leg + 18 upper-body joints, floating base on a floor
+armar4_standing 18     ``armar4_fixed_hands`` with the 12 leg joints welded at 0 (their initial pose):
+                       18 upper-body joints, floating base on a floor (the fixed-legs balance task)
 =============  ======  ==========================================================================
 
 Simulation model (all robots): time step ``sim_dt`` (default 1/240 s, the papers' PyBullet
@@ -45,7 +47,8 @@ from mujoco import mjx
 from mjx_pathtrack.robots import ball_scene, iiwa
 from mjx_pathtrack.core.limits import JointLimits
 from mjx_pathtrack.robots.urdf_import import UrdfJoint, link_mesh_vertices, load_urdf, urdf_to_spec
-from mjx_pathtrack.robots.scene import FOOT_LINKS, _add_floor_contacts, _add_servos, _add_target_sites, _configure_solver, _height_above_floor, _tune_servos
+from mjx_pathtrack.robots.scene import (FOOT_LINKS, _add_floor_contacts, _add_pelvis_site, _add_servos, _add_target_sites,
+                                        _configure_solver, _height_above_floor, _tune_servos)
 
 Array = jax.Array
 
@@ -62,6 +65,12 @@ SIM_DT = 1.0 / 240.0
 #: servo bandwidth [rad/s] and damping ratio of the joint controllers
 SERVO_OMEGA = 400.0
 SERVO_ZETA = 1.0
+#: ``armar4_standing``'s sole contact (time constant [s], damping ratio; MuJoCo's default 0.02, 1):
+#: softer than the default, standing in for the give of the servo-held legs that welding removes.
+#: Picked among 0.02-0.08 s and damping 0.5-1 against PyBullet on 200 fast motions
+#: (``scripts/armar4_pybullet_fidelity.py --model armar4_standing``, seeds 0 and 7): same
+#: fall/no-fall in 94 % / 96 %, peak-tilt ratio 0.88 / 0.86 (the default contact: 91 % / 96 %, 0.61 / 0.61)
+STANDING_SOLE_SOLREF = (0.025, 1.0)
 HUMANOIDS_EXTRA = 'armar (CC BY-NC 4.0) is not installed: install the extra "humanoids", e.g. pip install -e ".[humanoids]"'
 
 
@@ -80,6 +89,8 @@ class _Spec:
     ball: bool = False
     gravcomp: bool = False  # measured: body gravcomp costs ~15 % of a batched MJX step
     armature: float = 0.0
+    welded: Callable[[str], bool] = lambda name: False  # URDF joints removed: their child links rigid at 0
+    sole_solref: tuple[float, float] = (0.02, 1.0)  # floating robots: the soles' contact (time constant [s], damping ratio)
 
 
 def _armar_urdf(robot_name: str) -> Callable[[], Path]:
@@ -116,6 +127,11 @@ ROBOTS: dict[str, _Spec] = {
     "armar4_legs": _Spec(_armar_urdf("armar4_fixed_hands"), 30, _armar4_acc, ("arm_wri2_r0", "arm_wri2_r1"),
                          path_joint=lambda n: not n.startswith("leg_"), floating=True,
                          armature=0.1),
+    # welded legs lack the give of servo-held ones: a softer sole contact stands in for it
+    # (STANDING_SOLE_SOLREF; docs/results.md "ARMAR-4 against the papers' simulator")
+    "armar4_standing": _Spec(_armar_urdf("armar4_fixed_hands"), 18, _armar4_acc, ("arm_wri2_r0", "arm_wri2_r1"),
+                             floating=True, armature=0.1, welded=lambda n: n.startswith("leg_"),
+                             sole_solref=STANDING_SOLE_SOLREF),
 }
 
 _OPTIONS = {"dt": DECISION_DT, "jerk_factor": 1.0, "sim_dt": SIM_DT, "pos_buffer": POS_BUFFER,
@@ -257,10 +273,14 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
     urdf_path = spec_def.urdf()
     urdf = load_urdf(urdf_path)
     conv = urdf_to_spec(urdf, urdf_path, floating=spec_def.floating, armature=spec_def.armature)
-    joints = conv.joints
+    spec = conv.spec
+    welded = [j for j in conv.joints if spec_def.welded(j.name)]
+    for j in welded:
+        if not j.lower <= 0.0 <= j.upper:
+            raise ValueError(f"{name}: cannot weld joint {j.name!r} at 0, outside its limits [{j.lower}, {j.upper}]")
+    joints = [j for j in conv.joints if not spec_def.welded(j.name)]
     if len(joints) != spec_def.n_joints:
         raise ValueError(f"{name}: {urdf_path} has {len(joints)} movable joints, expected {spec_def.n_joints}")
-    spec = conv.spec
     spec.modelname = name
     spec.option.timestep = opts["sim_dt"]
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
@@ -271,7 +291,11 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
     if spec_def.ball:
         ball_scene.add_plate_and_ball(spec)
     if spec_def.floating:
-        _add_floor_contacts(spec, {link: link_mesh_vertices(urdf, urdf_path, link) for link in FOOT_LINKS})
+        _add_floor_contacts(spec, {link: link_mesh_vertices(urdf, urdf_path, link) for link in FOOT_LINKS},
+                            solref=spec_def.sole_solref)
+        _add_pelvis_site(spec)
+    for j in welded:  # after the soles are placed on the feet: the compiler fuses rigid links into their parent
+        spec.delete(spec.joint(j.name))
     _configure_solver(spec, has_contacts=spec_def.ball or spec_def.floating,
                       iterations=ball_scene.ITERATIONS if spec_def.ball else 4)
     names = [j.name for j in joints]

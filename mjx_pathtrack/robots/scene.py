@@ -29,11 +29,14 @@ SOLE_THICKNESS = 0.01  # m
 SOLE_BAND = 0.002
 
 
-def _add_floor_contacts(spec: mujoco.MjSpec, foot_vertices: dict[str, np.ndarray]) -> None:
+def _add_floor_contacts(spec: mujoco.MjSpec, foot_vertices: dict[str, np.ndarray],
+                        solref: tuple[float, float] = (0.02, 1.0)) -> None:
     """A floor plane at z = 0 and, per foot, a flat sole box under the bottom of the foot's
     collision mesh: the world-aligned bounds (at ``qpos0``, all joints 0, feet flat) of the
     vertices ``foot_vertices[link] [k, 3]`` (link frame) within :data:`SOLE_BAND` of the lowest
-    one, its underside at that lowest point. These are the only geoms touching the floor.
+    one, its underside at that lowest point. These are the only geoms touching the floor. Soles
+    and floor get the contact's ``solref`` (time constant [s], damping ratio; MuJoCo mixes the
+    two geoms' values).
 
     The sole is the support polygon of the papers' simulator, which collides the meshes: there
     the heel and toe links hover 3-4 mm above the floor and touch it only when the foot tilts,
@@ -58,9 +61,22 @@ def _add_floor_contacts(spec: mujoco.MjSpec, foot_vertices: dict[str, np.ndarray
         mujoco.mju_mat2Quat(quat, rot.T.copy().ravel())
         spec.body(link).add_geom(name=f"sole_{link}", type=mujoco.mjtGeom.mjGEOM_BOX, size=half,
                                  pos=rot.T @ (center - origin), quat=quat, contype=1, conaffinity=0, condim=3,
-                                 group=2, friction=[1.0, 0.005, 0.0001])
+                                 group=2, friction=[1.0, 0.005, 0.0001], solref=list(solref))
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
-                            contype=0, conaffinity=1, condim=3, friction=[1.0, 0.005, 0.0001])
+                            contype=0, conaffinity=1, condim=3, friction=[1.0, 0.005, 0.0001], solref=list(solref))
+
+
+#: site at the floating base link's centre of mass (the pelvis position of the balance task)
+PELVIS_SITE = "pelvis"
+
+
+def _add_pelvis_site(spec: mujoco.MjSpec) -> None:
+    """Site :data:`PELVIS_SITE` on the floating root body at its centre of mass as compiled now
+    (``body_ipos``, the URDF's fixed links fused in). Add it before welding further links to the
+    root, which moves the root's centre of mass but not the site."""
+    probe = spec.copy().compile()
+    root = spec.worldbody.first_body()
+    root.add_site(name=PELVIS_SITE, pos=probe.body_ipos[probe.body(root.name).id], size=[0.01, 0, 0])
 
 
 def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool, iterations: int = 4) -> None:

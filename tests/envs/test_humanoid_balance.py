@@ -23,6 +23,13 @@ PUSH = 2.5  # roll rate [rad/s] given to the pelvis of the pushed robot
 
 @pytest.fixture(scope="module")
 def robot():
+    """The fixed-legs task's robot (legs welded)."""
+    return load_robot(H.STANDING_ROBOT)
+
+
+@pytest.fixture(scope="module")
+def legs_robot():
+    """The robot with leg joints (controlled legs, or fixed legs held by their servos)."""
     return load_robot(H.ROBOT)
 
 
@@ -93,13 +100,14 @@ def test_push_makes_it_fall_and_ends_the_episode(rollout):
     assert tilt_reward[step, 1] == 0.0  # beyond 0.125 rad the tilt term is 0
 
 
-def test_observation_sizes_match_reference(robot, rollout):
+def test_observation_sizes_match_reference(robot, legs_robot, rollout):
     env, obs0, (_, _, _, _, obs, _) = rollout
     assert (env.observation_size, env.action_size) == (234, 18)
     assert obs0.shape == (2, 234) and obs.shape[-1] == 234 and np.abs(obs).max() <= 1.0
     key = jax.random.PRNGKey(0)
-    for legs, sensor, size, actions in (("fixed", False, 226, 18), ("controlled", True, 270, 30)):
-        other = make(robot, legs, sensor)
+    for which, legs, sensor, size, actions in ((robot, "fixed", False, 226, 18), (legs_robot, "fixed", True, 234, 18),
+                                               (legs_robot, "controlled", True, 270, 30)):
+        other = make(which, legs, sensor)
         assert (other.observation_size, other.action_size) == (size, actions)
         assert jax.eval_shape(other.reset, key).obs.shape == (size,)
         assert H.observation_size(8, legs, sensor) == size
@@ -113,6 +121,15 @@ def test_bad_options_are_rejected(robot):
         make(robot, legs="hopping")
     with pytest.raises(ValueError, match="no floating base"):
         H.HumanoidBalanceEnv(load_robot("armar4"), small_paths(robot), 0.2, EnvConfig())
+    with pytest.raises(ValueError, match="no leg joints to control"):
+        make(robot, legs="controlled")
+
+
+@pytest.mark.parametrize("legs,robot_name", [("fixed", H.STANDING_ROBOT), ("controlled", H.ROBOT)])
+def test_training_env_uses_welded_legs_when_they_are_fixed(legs, robot_name):
+    cfg = TrainConfig().replace(task="balance", robot="armar4", executor="mjx", legs=legs)
+    env = H.make_env(cfg, "test")
+    assert env.robot.name == robot_name and env.action_size == (18 if legs == "fixed" else 30)
 
 
 def test_balance_weights_scale_only_the_balance_terms():

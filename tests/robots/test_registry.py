@@ -40,7 +40,7 @@ def robots():
 # --- registry and errors ---------------------------------------------------------------------
 
 def test_unknown_robot_lists_known_names():
-    with pytest.raises(ValueError, match="unknown robot 'ur5'.*iiwa, iiwa_ball, armar6, armar4, armar4_legs"):
+    with pytest.raises(ValueError, match="unknown robot 'ur5'.*iiwa, iiwa_ball, armar6, armar4, armar4_legs, armar4_standing"):
         load_robot("ur5")
 
 
@@ -99,6 +99,7 @@ def test_missing_urdf_file(tmp_path):
 
 @pytest.mark.parametrize("name,n,n_path", [
     ("iiwa", 7, 7), ("iiwa_ball", 7, 7), ("armar6", 17, 17), ("armar4", 18, 18), ("armar4_legs", 30, 18),
+    ("armar4_standing", 18, 18),
 ])
 def test_joint_counts(robots, name, n, n_path):
     robot = robots(name)
@@ -175,7 +176,7 @@ def test_armar6_limits_match_reference(robots):
     _table(robot, table)
 
 
-@pytest.mark.parametrize("name", ["armar4", "armar4_legs"])
+@pytest.mark.parametrize("name", ["armar4", "armar4_legs", "armar4_standing"])
 def test_armar4_limits_match_reference(robots, name):
     table = {"torso_yaw_joint": (-1.5708, 1.5708, 0.6, 7.0), "torso_pitch_joint": (-0.5, 0.5, 0.4, 4.5)}
     for side in ("r0", "r1"):
@@ -214,7 +215,7 @@ def test_iiwa_fk_hand_computed(robots):
     np.testing.assert_allclose(rot[:, 0], expected_rot, atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["iiwa", "armar6", "armar4_legs"])
+@pytest.mark.parametrize("name", ["iiwa", "armar6", "armar4_legs", "armar4_standing"])
 def test_fk_agrees_with_mujoco(robots, name):
     robot = robots(name)
     rng = np.random.default_rng(1)
@@ -234,7 +235,7 @@ def test_fk_agrees_with_mujoco(robots, name):
 
 
 def test_armar_targets_are_two_hands(robots):
-    for name in ("armar6", "armar4", "armar4_legs"):
+    for name in ("armar6", "armar4", "armar4_legs", "armar4_standing"):
         robot = robots(name)
         data = robot.mj_data()
         left, right = data.site_xpos[robot.site_ids]
@@ -309,7 +310,7 @@ def test_tracking_armar_mujoco_c(robots, name):
 
 # --- ARMAR simulation ------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", ["armar6", "armar4", "armar4_legs"])
+@pytest.mark.parametrize("name", ["armar6", "armar4", "armar4_legs", "armar4_standing"])
 def test_armar_simulates(robots, name):
     robot = robots(name)
     data = robot.mj_data()
@@ -319,9 +320,10 @@ def test_armar_simulates(robots, name):
     assert robot.mjx_model.nq == robot.mj_model.nq  # the MJX model exists (benchmark runs it)
 
 
-def test_armar4_floating_base_stands(robots):
+@pytest.mark.parametrize("name", ["armar4_legs", "armar4_standing"])
+def test_armar4_floating_base_stands(robots, name):
     """Holding q0 for 1 s: the pelvis stays upright and in place, the joints hold their positions."""
-    robot = robots("armar4_legs")
+    robot = robots(name)
     assert robot.floating
     model, data = robot.mj_model, robot.mj_data()
     base0 = data.qpos[:3].copy()
@@ -334,3 +336,28 @@ def test_armar4_floating_base_stands(robots):
     assert np.linalg.norm(data.qpos[:3] - base0) < 0.005
     assert np.abs(data.qpos[robot.qpos_adr] - robot.q0).max() < 2e-3
     assert data.ncon >= 4  # standing on its soles, not floating
+
+
+
+def test_armar4_standing_is_armar4_legs_with_welded_legs(robots):
+    """Same upper body, masses and pelvis, 12 fewer degrees of freedom; at any upper-body pose the
+    target points and the pelvis site agree with ``armar4_legs`` at legs 0."""
+    legs, standing = robots("armar4_legs"), robots("armar4_standing")
+    upper = np.flatnonzero(legs.path_mask)
+    assert standing.joint_names == tuple(legs.joint_names[i] for i in upper)
+    assert standing.mj_model.nv == legs.mj_model.nv - 12 == 24
+    assert standing.mj_model.body_subtreemass[0] == pytest.approx(legs.mj_model.body_subtreemass[0])
+    np.testing.assert_allclose(standing.qpos0[:7], legs.qpos0[:7], atol=1e-9)  # same height above the floor
+    q = np.random.default_rng(0).uniform(standing.limits.pos_min, standing.limits.pos_max)
+    out = []
+    for robot, qr in ((legs, np.zeros(legs.n_joints)), (standing, q)):
+        qr[upper if robot is legs else slice(None)] = q
+        data = mujoco.MjData(robot.mj_model)
+        data.qpos[:] = robot.qpos0
+        data.qpos[robot.qpos_adr] = qr
+        mujoco.mj_kinematics(robot.mj_model, data)
+        out.append((data.site_xpos[robot.site_ids], data.site_xpos[robot.mj_model.site("pelvis").id]))
+    np.testing.assert_allclose(out[0][0], out[1][0], atol=1e-6)
+    np.testing.assert_allclose(out[0][1], out[1][1], atol=1e-6)
+    data = legs.mj_data()  # armar4_legs' pelvis site is its base body's centre of mass
+    np.testing.assert_allclose(data.site_xpos[legs.mj_model.site("pelvis").id], data.xipos[1], atol=1e-9)

@@ -1,15 +1,19 @@
 """ARMAR-4 keeping its balance while its upper body tracks a path (paper 000 §IV-B, docs/method.md §2.4, §4).
 
-The robot is ``armar4_legs`` of :mod:`mjx_pathtrack.robots.registry`: a floating base (the pelvis link
-``base``) standing on two flat soles on a floor, MJX physics with foot-floor contacts and few
+The robot is ARMAR-4 of :mod:`mjx_pathtrack.robots.registry` on a floating base (the pelvis
+link ``base``) standing on two flat soles on a floor, MJX physics with foot-floor contacts and few
 solver iterations. The reference path covers the 18 upper-body joints (torso + two arms):
 
 * ``legs="fixed"`` (18 actions, the papers' ``balancing_reward_fixed_legs`` net): the policy
-  moves the upper body only; the 12 leg joints are held at their initial pose ``q0`` by their
-  servos (:class:`HeldJointsExecutor`);
-* ``legs="controlled"`` (30 actions, ``balancing_reward_controlled_legs``): the leg joints are
-  actuated by the policy too, through the same safe action space (their own position, velocity,
-  acceleration and jerk limits); they are not part of the path and start at ``q0``.
+  moves the upper body only. :func:`make_env` builds it on ``armar4_standing``, whose leg joints
+  are welded at their initial pose (0): 24 degrees of freedom instead of 36, twice as fast, and
+  as close to the papers' simulator as the servo-held legs (``benchmarks/bench_balance.py``,
+  ``scripts/armar4_pybullet_fidelity.py``). On ``armar4_legs`` the same task holds the 12 leg
+  joints at ``q0`` by their servos (:class:`HeldJointsExecutor`);
+* ``legs="controlled"`` (30 actions, ``balancing_reward_controlled_legs``, ``armar4_legs``): the
+  leg joints are actuated by the policy too, through the same safe action space (their own
+  position, velocity, acceleration and jerk limits); they are not part of the path and start at
+  ``q0``.
 
 On top of :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv` (through its ``task_step`` hook):
 
@@ -27,8 +31,10 @@ On top of :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv` (through its ``t
   published code's optional z-angle termination) or the pelvis centre of mass dropped by more
   than ``fall_drop`` (0.2 m); the episode then ends as a task failure (``task_failed`` metric).
 
-Positions of the pelvis are those of the ``base`` body's centre of mass (``xipos``, about 0.99 m
-above the floor, like PyBullet's base position); its orientation is the body frame's.
+Positions of the pelvis are those of the pelvis link's centre of mass (site ``pelvis`` of the
+registry's floating robots, about 0.98 m above the floor, like PyBullet's base position; on
+``armar4_standing`` the welded legs move the ``base`` body's own centre of mass, not the site);
+its orientation is the body frame's.
 """
 
 from __future__ import annotations
@@ -46,10 +52,13 @@ from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
 from mjx_pathtrack.envs.executors import MjxExecutor
+from mjx_pathtrack.robots.scene import PELVIS_SITE
 
 Array = jax.Array
 
 ROBOT = "armar4_legs"
+#: the robot of the fixed-legs task: ``armar4_legs`` with the legs welded at their initial pose
+STANDING_ROBOT = "armar4_standing"
 #: dataset robot whose path joints are ARMAR-4's 18 upper-body joints (same names and order)
 DATASET_ROBOT = "armar4"
 LEGS = ("fixed", "controlled")
@@ -109,7 +118,8 @@ class BalanceOptions:
 class HumanoidBalanceEnv(PathTrackingEnv):
     """Path tracking of ARMAR-4's upper body on its own two feet (see module docstring).
 
-    ``robot``: the loaded ``armar4_legs`` :class:`~mjx_pathtrack.robots.registry.Robot`; ``paths``: stacked
+    ``robot``: a loaded floating-base ARMAR-4 :class:`~mjx_pathtrack.robots.registry.Robot`
+    (``armar4_standing``: fixed legs only; ``armar4_legs``: both); ``paths``: stacked
     paths over the 18 upper-body joints; ``config``: :class:`~mjx_pathtrack.envs.tracking.EnvConfig` (its
     ``reward`` holds the balance weights, e.g. :data:`BALANCE_WEIGHTS`; ``substeps`` must equal
     ``robot.n_substeps``); ``options``: :class:`BalanceOptions`.
@@ -125,7 +135,14 @@ class HumanoidBalanceEnv(PathTrackingEnv):
         if not robot.floating:
             raise ValueError(f"robot {robot.name!r} has no floating base; the balance task needs {ROBOT!r}")
         upper = np.flatnonzero(np.asarray(robot.path_mask))
-        if options.legs == "fixed":
+        if options.legs == "controlled" and len(upper) == robot.n_joints:
+            raise ValueError(f"robot {robot.name!r} has no leg joints to control; legs='controlled' needs {ROBOT!r}")
+        if options.legs == "fixed" and len(upper) == robot.n_joints:  # legs welded: nothing to hold
+            active = upper
+            limits = robot.limits
+            executor = MjxExecutor(robot)
+            path_joints = upper
+        elif options.legs == "fixed":
             active = upper
             lim = robot.limits
             limits = L.JointLimits(*(jnp.asarray(x)[active] for x in (lim.pos_min, lim.pos_max, lim.vel, lim.acc,
@@ -148,7 +165,8 @@ class HumanoidBalanceEnv(PathTrackingEnv):
         self._base_body = int(robot.mj_model.body("base").id)
         if robot.mj_model.jnt_type[0] != 0 or robot.mj_model.jnt_bodyid[0] != self._base_body:
             raise ValueError(f"{robot.name}: the first joint must be the free joint of body 'base'")
-        self._base0 = jnp.asarray(data0.xipos[self._base_body], jnp.float32)
+        self._pelvis = int(robot.mj_model.site(PELVIS_SITE).id)
+        self._base0 = jnp.asarray(data0.site_xpos[self._pelvis], jnp.float32)
         self._qpos0 = jnp.asarray(robot.qpos0, jnp.float32)
         self._sites = jnp.asarray(robot.site_ids)
         self._fk_data = mjx.make_data(robot.mjx_model)
@@ -158,7 +176,7 @@ class HumanoidBalanceEnv(PathTrackingEnv):
     def base_state(self, data) -> tuple[Array, Array, Array, Array]:
         """From the executor's ``mjx.Data``: pelvis position relative to its start ``[3]`` [m],
         quaternion ``[4]`` (w, x, y, z; w >= 0), z-axis in the world ``[3]`` and tilt ``[]`` [rad]."""
-        pos = data.xipos[self._base_body] - self._base0
+        pos = data.site_xpos[self._pelvis] - self._base0
         quat = data.qpos[3:7]
         quat = jnp.where(quat[0] < 0, -quat, quat)
         z_axis = data.xmat[self._base_body].reshape(3, 3)[:, 2]
@@ -253,7 +271,7 @@ def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis:
                          f"got robot {config.robot!r}")
     if config.executor != "mjx":
         raise ValueError(f"the balance task needs the mjx executor (floating base physics), got {config.executor!r}")
-    robot = robots.load_robot(ROBOT, dt=config.env.dt)
+    robot = robots.load_robot(STANDING_ROBOT if config.balance.legs == "fixed" else ROBOT, dt=config.env.dt)
     if max_dis is None:
         meta = datasets.read_config(config.robot, config.dataset, root)
         upper = [n for n, m in zip(robot.joint_names, robot.path_mask) if m]
