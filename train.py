@@ -4,6 +4,7 @@
     python train.py --preset paper       # the same recipe at 40 M steps, iiwa: alpha 2, 1000 train paths (~25 min on 2 cores)
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
+    python train.py --init-from runs/x --alpha 2.5 --init-noise-std 0.05 --out runs/y  # fine-tune x's policy
     python train.py --task ball_on_plate [--no-ball-reward]   # iiwa ball on plate (MJX), with / without R_ball
     python train.py --sweep sweep.yaml [--out DIR]  # a grid of runs + summary.csv (mjx_pathtrack.sweeps.run)
     python train.py --robot armar6         # ARMAR-6 with the papers' settings (alpha 1, 20 s, no R_action)

@@ -23,6 +23,7 @@ maps to one or more dotted paths (``beta`` sets both deviation weights); dotted 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -116,8 +117,11 @@ class TrainConfig(Options):
     ``robot``, ``task`` (:data:`TASKS`), ``dataset`` (of the robot, under ``dataset_root``; None:
     the committed ``splines/``), ``num_train_paths``: regenerate the train split with this many
     paths (deterministic, into ``<run>/data``) when the dataset's has fewer (0: train on the split
-    as it is; :mod:`mjx_pathtrack.paths.train_data`), ``executor`` (:data:`EXECUTORS`), ``seed``;
-    then one block per concern (module docstring). ``env.deviation_weights`` None: the robot's
+    as it is; :mod:`mjx_pathtrack.paths.train_data`), ``executor`` (:data:`EXECUTORS`), ``seed``,
+    ``init_from``: a finished run directory whose parameters (policy, value, observation
+    normaliser; its ``params.pkl``) the run starts from instead of random ones (fine-tuning: same
+    observation, action and network sizes; the optimiser and the schedules start afresh); then one
+    block per concern (module docstring). ``env.deviation_weights`` None: the robot's
     (:data:`DEVIATION_WEIGHTS`)."""
 
     robot: str = "iiwa"
@@ -127,6 +131,7 @@ class TrainConfig(Options):
     num_train_paths: int = 0
     executor: str = "kinematic"
     seed: int = 0
+    init_from: str | None = None
     env: EnvConfig = dataclasses.field(default_factory=training_env)
     ppo: PPOConfig = PPOConfig()
     network: NetworkConfig = NetworkConfig()
@@ -172,7 +177,8 @@ _ENV_OPTIONS = ("dt", "n_next", "knots_frame", "terminate_deviation", "end_toler
 #: flat option name -> the dotted paths it sets (the command line's ``--name``, sweep grid keys,
 #: the keys of a flat ``config.json``)
 FLAT_NAMES: dict[str, tuple[str, ...]] = {
-    **{name: (name,) for name in ("robot", "task", "dataset", "dataset_root", "num_train_paths", "executor", "seed")},
+    **{name: (name,) for name in ("robot", "task", "dataset", "dataset_root", "num_train_paths", "executor", "seed",
+                                  "init_from")},
     **{name: (f"env.{name}",) for name in _ENV_OPTIONS},
     "alpha": ("env.reward.distance",),
     "beta": ("env.reward.max_deviation", "env.reward.mean_deviation"),
@@ -238,6 +244,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
             fail(name, f"must be >= 1, got {value}")
     if c.num_train_paths < 0:
         fail("num_train_paths", f"must be >= 0, got {c.num_train_paths}")
+    if c.init_from is not None and not (Path(c.init_from) / "params.pkl").is_file():
+        fail("init_from", f"{c.init_from}: no params.pkl there (the directory of a finished run)")
     for name in ("policy_layers", "value_layers"):
         if not get(name) or min(get(name)) < 1:
             fail(name, f"needs at least one layer, each of size >= 1, got {list(get(name))}")

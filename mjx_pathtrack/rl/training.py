@@ -180,6 +180,38 @@ def _host(tree):
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
 
+def warm_start(learner, source: str | os.PathLike, devices: int):
+    """``learner`` with the policy, value and observation-normaliser parameters of the finished
+    run in directory ``source`` (its ``params.pkl``, :func:`_brax_params`' layout), replicated
+    over ``devices``; the optimiser state, environments and keys stay ``learner``'s. Raises
+    :class:`RunDirError` naming the first parameter whose shape differs (another network size,
+    observation or action size)."""
+    path = FsPath(source) / "params.pkl"
+    try:
+        loaded = pickle.loads(path.read_bytes())
+    except (OSError, pickle.UnpicklingError, EOFError) as e:
+        raise RunDirError(f"--init-from: cannot read {path} ({e})") from e
+    own = (learner.normalizer_params, learner.params.policy, learner.params.value)
+    own_leaves, own_tree = jax.tree.flatten_with_path(own)
+    new_leaves, new_tree = jax.tree.flatten(loaded)
+    if len(new_leaves) != len(own_leaves):
+        raise RunDirError(f"--init-from: {path} holds {len(new_leaves)} arrays, this run's networks "
+                          f"{len(own_leaves)}: another network layout")
+    out = []
+    for (where, mine), theirs in zip(own_leaves, new_leaves):
+        theirs = jnp.asarray(theirs, mine.dtype)
+        if devices > 1:
+            theirs = jnp.broadcast_to(theirs, (devices,) + theirs.shape)
+        if theirs.shape != mine.shape:
+            part = ("observation normaliser", "policy", "value")[where[0].idx]
+            raise RunDirError(f"--init-from: {path}: {part} parameter {jax.tree_util.keystr(where[1:])} has shape "
+                              f"{tuple(theirs.shape)}, this run's {tuple(mine.shape)} (network, observation or action "
+                              f"size differ)")
+        out.append(theirs)
+    normalizer, policy, value = jax.tree.unflatten(own_tree, out)
+    return learner._replace(normalizer_params=normalizer, params=learner.params.replace(policy=policy, value=value))
+
+
 def _brax_params(learner, devices: int):
     """``(normalizer, policy, value)`` host arrays of a learner (device 0's copy)."""
     params = (learner.normalizer_params, learner.params.policy, learner.params.value)
@@ -250,6 +282,8 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     checkpoints = run_dir / "checkpoints"
     if checkpoint is None:
         learner, start_step, wall, evals = program.init(config.seed), 0, 0.0, {}
+        if config.init_from is not None:
+            learner = warm_start(learner, config.init_from, program.devices)
         truncate_progress(run_dir / "progress.csv", -1)
     else:
         if int(checkpoint["devices"]) != program.devices:

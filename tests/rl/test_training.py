@@ -95,6 +95,32 @@ def test_resume_continues_from_the_last_checkpoint(tiny_run, tmp_path):
         train(TrainConfig.from_flat({**TINY, "seed": 5}), run, resume=True, verbose=False)
 
 
+def test_init_from_starts_where_the_source_run_ended(tiny_run, tmp_path):
+    out, config, params, report = tiny_run
+    warm = config.replace(init_from=str(out))  # same seed: the same evaluation episodes
+    _, tuned, warm_report = train(warm, tmp_path / "warm", verbose=False)
+    # its evaluation before training is the source's final one (deterministic: the policy's mean,
+    # normalised observations; the sampled one differs: the std schedule starts afresh) ...
+    assert warm_report["before"] == pytest.approx(report["after"], nan_ok=True)
+    # ... and it trains on from there
+    assert any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(jax.tree.leaves(params),
+                                                                                   jax.tree.leaves(tuned)))
+    assert TrainConfig.from_json((tmp_path / "warm" / "config.json").read_text()).init_from == str(out)
+
+
+def test_init_from_refuses_other_networks_and_missing_runs(tiny_run, tmp_path):
+    from mjx_pathtrack.config.options import ConfigError
+    from mjx_pathtrack.rl.checkpoint import RunDirError
+
+    out, config, _, _ = tiny_run
+    with pytest.raises(RunDirError, match="policy.*shape .*this run's"):
+        train(config.replace(init_from=str(out), policy_layers=(8,)), tmp_path / "other", verbose=False)
+    assert not (tmp_path / "other").exists()  # nothing left behind
+    with pytest.raises(ConfigError, match="--init-from: .*no params.pkl"):
+        train(config.replace(init_from=str(tmp_path / "nowhere")), tmp_path / "missing", verbose=False)
+    assert not (tmp_path / "missing").exists()
+
+
 def test_train_cli_on_two_forced_host_devices(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     cache = tmp_path / "jax_cache"
