@@ -8,7 +8,7 @@
   spinning friction (``condim = 6``, :class:`~mjx_pathtrack.envs.tasks.ball_on_plate.BallExecutor`).
   Only ball-plate contacts exist (``contype``/``conaffinity`` bit 2).
 * Physics option ``impratio`` = :data:`IMPRATIO` (1000), so that the ball's rolling friction acts,
-  and :data:`ITERATIONS` Newton iterations (set by the registry), so that the solver converges.
+  and :data:`ITERATIONS` Newton iterations (the registry's ``iiwa_ball`` entry), so that the solver converges.
 * Sensor ``ball_in_plate`` (``framepos`` of site ``ball`` in site ``plate``): ball centre in the
   plate frame [m]; :func:`ball_in_plate_frame` computes the same from ``site_xpos``/``site_xmat``.
 * :func:`sample_start_xy` draws the start position on the plate; :func:`ball_pose_on_plate`
@@ -46,7 +46,7 @@ _CONTACT_BIT = 2
 #: integrator and 4 iterations (docs/results.md "Ball on plate", ``tests/envs/test_ball_physics.py``)
 IMPRATIO = 1000.0
 #: Newton iterations of the ball scene's constraint solver. At :data:`IMPRATIO` the solver needs
-#: more than the 4 that suffice elsewhere (``scene._configure_solver``): with 4 it stops short of
+#: more than the 4 that suffice elsewhere (``scene.SOLVER_ITERATIONS``): with 4 it stops short of
 #: convergence during the fast motions a trained policy makes and the ball slips off the plate
 #: (open-loop replay of a policy's plate motions in MuJoCo: 36.5 % falls at 4 iterations, 8 % at
 #: 6, 7.5 % at 10 and 20, 3.5 % in the rolling-ball scene the motions came from)

@@ -47,8 +47,9 @@ from mujoco import mjx
 from mjx_pathtrack.robots import ball_scene, iiwa
 from mjx_pathtrack.core.limits import JointLimits
 from mjx_pathtrack.robots.urdf_import import UrdfJoint, link_mesh_vertices, load_urdf, urdf_to_spec
-from mjx_pathtrack.robots.scene import (FOOT_LINKS, _add_floor_contacts, _add_pelvis_site, _add_servos, _add_target_sites,
-                                        _configure_solver, _height_above_floor, _tune_servos)
+from mjx_pathtrack.robots.scene import (FOOT_LINKS, SOLE_SOLREF, SOLVER_ITERATIONS, _add_floor_contacts, _add_pelvis_site,
+                                        _add_servos, _add_target_sites, _configure_solver, _height_above_floor,
+                                        _tune_servos)
 
 Array = jax.Array
 
@@ -90,7 +91,8 @@ class _Spec:
     gravcomp: bool = False  # measured: body gravcomp costs ~15 % of a batched MJX step
     armature: float = 0.0
     welded: Callable[[str], bool] = lambda name: False  # URDF joints removed: their child links rigid at 0
-    sole_solref: tuple[float, float] = (0.02, 1.0)  # floating robots: the soles' contact (time constant [s], damping ratio)
+    sole_solref: tuple[float, float] = SOLE_SOLREF  # floating robots: the soles' contact (time constant [s], damping ratio)
+    solver_iterations: int = SOLVER_ITERATIONS  # Newton iterations of a scene with contacts
 
 
 def _armar_urdf(robot_name: str) -> Callable[[], Path]:
@@ -119,7 +121,7 @@ ROBOTS: dict[str, _Spec] = {
     "iiwa": _Spec(lambda: IIWA_URDF, 7, lambda n: float(iiwa.ACC[iiwa.JOINT_NAMES.index(n)]), ("iiwa_link_ee",),
                   armature=0.1),
     "iiwa_ball": _Spec(lambda: IIWA_URDF, 7, lambda n: float(iiwa.ACC[iiwa.JOINT_NAMES.index(n)]), ("iiwa_link_ee",),
-                       ball=True, armature=0.1),
+                       ball=True, armature=0.1, solver_iterations=ball_scene.ITERATIONS),
     "armar6": _Spec(_armar_urdf("armar6_front"), 17, lambda n: 15.0, ("hand_fixed_r0", "hand_fixed_r1"),
                     armature=0.1),
     "armar4": _Spec(_armar_urdf("armar4_fixed_hands_and_legs"), 18, _armar4_acc, ("arm_wri2_r0", "arm_wri2_r1"),
@@ -296,8 +298,7 @@ def _build(name: str, spec_def: _Spec, opts: dict, n_substeps: int) -> Robot:
         _add_pelvis_site(spec)
     for j in welded:  # after the soles are placed on the feet: the compiler fuses rigid links into their parent
         spec.delete(spec.joint(j.name))
-    _configure_solver(spec, has_contacts=spec_def.ball or spec_def.floating,
-                      iterations=ball_scene.ITERATIONS if spec_def.ball else 4)
+    _configure_solver(spec, has_contacts=spec_def.ball or spec_def.floating, iterations=spec_def.solver_iterations)
     names = [j.name for j in joints]
     _add_servos(spec, names)
     model = spec.compile()

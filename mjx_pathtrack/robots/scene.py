@@ -27,10 +27,14 @@ FOOT_LINKS = ("leg_ank2_r0", "leg_ank2_r1")
 SOLE_THICKNESS = 0.01  # m
 #: a foot mesh's vertices within this height [m] of its lowest one (standing at qpos0) form the sole
 SOLE_BAND = 0.002
+#: the soles' and floor's contact (time constant [s], damping ratio): MuJoCo's default
+SOLE_SOLREF = (0.02, 1.0)
+#: Newton iterations of the contact scenes (measured: the vmapped solver dominates the step cost)
+SOLVER_ITERATIONS = 4
 
 
 def _add_floor_contacts(spec: mujoco.MjSpec, foot_vertices: dict[str, np.ndarray],
-                        solref: tuple[float, float] = (0.02, 1.0)) -> None:
+                        solref: tuple[float, float] = SOLE_SOLREF) -> None:
     """A floor plane at z = 0 and, per foot, a flat sole box under the bottom of the foot's
     collision mesh: the world-aligned bounds (at ``qpos0``, all joints 0, feet flat) of the
     vertices ``foot_vertices[link] [k, 3]`` (link frame) within :data:`SOLE_BAND` of the lowest
@@ -79,7 +83,7 @@ def _add_pelvis_site(spec: mujoco.MjSpec) -> None:
     root.add_site(name=PELVIS_SITE, pos=probe.body_ipos[probe.body(root.name).id], size=[0.01, 0, 0])
 
 
-def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool, iterations: int = 4) -> None:
+def _configure_solver(spec: mujoco.MjSpec, has_contacts: bool, iterations: int = SOLVER_ITERATIONS) -> None:
     """Batched-MJX-friendly solver settings: no constraints at all when the scene has no contacts
     (``has_contacts`` false: no ball, no floating base); otherwise few (``iterations``) Newton
     iterations (measured: the vmapped solver dominates the step cost)."""

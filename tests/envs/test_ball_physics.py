@@ -70,14 +70,20 @@ def _plate_motion(env, kin, episodes: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(surface, np.float64), np.asarray(rot, np.float64)
 
 
+def _episode_balls(start) -> tuple[np.ndarray, ...]:
+    """``(radius, mass, mu_spin, mu_roll, start xy)`` of the balls of the reset executor states
+    ``start`` (``[E]`` each, xy ``[E, 2]``), as the ball task draws them from their keys."""
+    radius, mass = jax.vmap(B.sample_ball)(start.key)
+    spin, roll = jax.vmap(BP.sample_friction)(start.key)
+    return tuple(np.asarray(x) for x in (radius, mass, spin, roll, np.asarray(start.ball)[:, :2]))
+
+
 def _pybullet(env, start, kin):
     """PyBullet's ball for the rolling executor's episodes: the plate follows the setpoints of the
     commanded motion ``kin`` (p, v, a before each step, a after it; ``[STEPS, EPISODES, 7]``)."""
     substeps = env.executor.substeps
     surface, rot = _plate_motion(env, kin, EPISODES)
-    radius, mass = (np.asarray(x) for x in jax.vmap(B.sample_ball)(start.key))
-    spin, roll = (np.asarray(x) for x in jax.vmap(BP.sample_friction)(start.key))
-    xy = np.asarray(start.ball)[:, :2]
+    radius, mass, spin, roll, xy = _episode_balls(start)
     balls = np.stack([pybullet_ball.replay(surface[:, e], rot[:, e], xy[e], float(radius[e]), float(mass[e]),
                                            mu_roll=float(roll[e]), mu_spin=float(spin[e]),
                                            substeps=substeps) for e in range(EPISODES)], axis=1)
@@ -254,7 +260,7 @@ def _mujoco_replay(model: mujoco.MjModel, surface: np.ndarray, rot: np.ndarray, 
     quat = np.zeros((len(rot), 4))
     for k in range(len(rot)):
         mujoco.mju_mat2Quat(quat[k], rot[k].ravel())
-    data.qpos[7:14] = np.concatenate([surface[0] + rot[0] @ np.array([*xy, r]), [1.0, 0.0, 0.0, 0.0]])
+    data.qpos[7:14] = B.ball_pose_on_plate(surface[0], rot[0], np.asarray(xy, np.float64), np.asarray(r))
     sensor = model.sensor_adr[model.sensor("ball_in_plate").id]
     h, ang, out = model.opt.timestep, np.zeros(3), []
     for k in range(len(rot) - 1):
@@ -292,9 +298,7 @@ def test_ball_scene_solver_converges_under_fast_motions():
     kin = jax.jit(lambda s, a: jax.lax.scan(body, s, a)[1])(start, actions)
     start = start.pipeline_state.executor
     surface, rot = _plate_motion(env, kin, FAST_EPISODES)
-    radius, mass = (np.asarray(x) for x in jax.vmap(B.sample_ball)(start.key))
-    spin, roll = (np.asarray(x) for x in jax.vmap(BP.sample_friction)(start.key))
-    xy = np.asarray(start.ball)[:, :2]
+    radius, mass, spin, roll, xy = _episode_balls(start)
     scene = PrescribedPlateExecutor(registry.load_robot("iiwa_ball")).mj_model
     assert scene.opt.iterations == B.ITERATIONS
 

@@ -137,12 +137,7 @@ class HumanoidBalanceEnv(PathTrackingEnv):
         upper = np.flatnonzero(np.asarray(robot.path_mask))
         if options.legs == "controlled" and len(upper) == robot.n_joints:
             raise ValueError(f"robot {robot.name!r} has no leg joints to control; legs='controlled' needs {ROBOT!r}")
-        if options.legs == "fixed" and len(upper) == robot.n_joints:  # legs welded: nothing to hold
-            active = upper
-            limits = robot.limits
-            executor = MjxExecutor(robot)
-            path_joints = upper
-        elif options.legs == "fixed":
+        if options.legs == "fixed" and len(upper) < robot.n_joints:  # legs held at q0 by their servos
             active = upper
             lim = robot.limits
             limits = L.JointLimits(*(jnp.asarray(x)[active] for x in (lim.pos_min, lim.pos_max, lim.vel, lim.acc,
@@ -150,7 +145,7 @@ class HumanoidBalanceEnv(PathTrackingEnv):
                                    names=tuple(robot.joint_names[i] for i in active))
             executor = HeldJointsExecutor(MjxExecutor(robot), active, robot.q0)
             path_joints = np.arange(len(active))
-        else:
+        else:  # every joint acts: controlled legs, or fixed legs welded (a robot without leg joints)
             active = np.arange(robot.n_joints)
             limits = robot.limits
             executor = MjxExecutor(robot)
