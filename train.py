@@ -66,7 +66,7 @@ def parse_args(argv=None):
     add_flags(parser, TrainConfig, CHOICES)
     known, _ = parser.parse_known_args(argv)
     try:
-        parser.set_defaults(**preset(known.robot, known.task))
+        parser.set_defaults(**preset(known.robot, known.task, known.legs))
     except ValueError as e:
         parser.error(str(e))
     # the robot and dataset the robot/task presets and the explicit flags give

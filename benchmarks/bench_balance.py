@@ -6,15 +6,19 @@ Measures, in one run and at the same batch size, the jitted, vmapped ``env.step`
 
 * the reference: the iiwa path-tracking environment with the MJX executor (7 joints, no contacts),
 * the balance environment (:mod:`mjx_pathtrack.envs.tasks.humanoid_balance`, floating base, two
-  soles on a floor, 24 physics steps per decision step) on ``armar4_legs`` (30 servo-controlled
-  joints; with ``--legs fixed`` the 12 leg joints are held at their pose by their servos),
-* with ``--legs fixed`` (the default) also the balance environment as ``train.py`` builds it for
-  fixed legs: ``armar4_standing``, the legs welded (18 joints, 24 degrees of freedom instead of 36),
+  soles on a floor) at the papers' physics rate (240 Hz, 24 physics steps per decision step) on
+  ``armar4_legs`` (30 servo-controlled joints; with ``--legs fixed`` the 12 leg joints are held
+  at their pose by their servos): the step before the cheaper models, the base of the ratios,
+* with ``--legs fixed`` (the default) the legs welded (``armar4_standing``: 18 joints, 24 degrees
+  of freedom instead of 36) at 240 Hz, and as ``train.py`` builds the task: welded at
+  :data:`~mjx_pathtrack.envs.tasks.humanoid_balance.PHYSICS_SUBSTEPS` physics steps per decision
+  step (80 Hz); with ``--legs controlled`` ``armar4_legs`` at that rate,
 
-and prints decision steps/s (env steps), physics steps/s (= decision steps/s x 24) and the ratios
-balance / iiwa and welded / held legs. Paths are short synthetic upper-body / iiwa paths around the initial pose (the
-cost of a step does not depend on them); actions are uniform random in [-1, 1] (fixed key), so
-some robots fall during the timed steps, as during training. Compilation is excluded.
+and prints decision steps/s (env steps), physics steps/s (= decision steps/s x physics steps per
+decision step) and the ratios to the iiwa and to the first balance row. Paths are short synthetic
+upper-body / iiwa paths around the initial pose (the cost of a step does not depend on them);
+actions are uniform random in [-1, 1] (fixed key), so some robots fall during the timed steps, as
+during training. Compilation is excluded.
 """
 
 from __future__ import annotations
@@ -72,31 +76,34 @@ def main() -> None:
     parser.add_argument("--legs", default="fixed", choices=H.LEGS)
     args = parser.parse_args()
 
-    def balance(name: str):
-        armar = load_robot(name)
-        return H.HumanoidBalanceEnv(armar, synthetic_paths(armar), 0.5, EnvConfig(duration=20.0, reward=H.BALANCE_WEIGHTS),
+    def balance(name: str, substeps: int):
+        armar = load_robot(name, sim_dt=0.1 / substeps)
+        return H.HumanoidBalanceEnv(armar, synthetic_paths(armar), 0.5,
+                                    EnvConfig(duration=20.0, reward=H.BALANCE_WEIGHTS, substeps=substeps),
                                     H.BalanceOptions(legs=args.legs))
 
     iiwa = load_robot("iiwa")
     reference = PathTrackingEnv(iiwa.limits, synthetic_paths(iiwa), 0.93, EnvConfig(), home=iiwa.q0,
                                 executor=MjxExecutor(iiwa))
-    held = "held" if args.legs == "fixed" else "controlled"
-    rows = [("iiwa, mjx executor (reference)", measure(reference, args.batch, args.repeats)),
-            (f"ARMAR-4 balance, legs {held}", measure(balance(H.ROBOT), args.batch, args.repeats))]
+    fast = H.PHYSICS_SUBSTEPS
     if args.legs == "fixed":
-        rows.append(("ARMAR-4 balance, legs welded", measure(balance(H.STANDING_ROBOT), args.batch, args.repeats)))
+        variants = [("legs held, 240 Hz", H.ROBOT, 24), ("legs welded, 240 Hz", H.STANDING_ROBOT, 24),
+                    (f"legs welded, {10 * fast} Hz (task)", H.STANDING_ROBOT, fast)]
+    else:
+        variants = [("legs controlled, 240 Hz", H.ROBOT, 24), (f"legs controlled, {10 * fast} Hz (task)", H.ROBOT, fast)]
+    rows = [("iiwa, mjx executor (reference)", measure(reference, args.batch, args.repeats))]
+    rows += [(f"ARMAR-4 {label}", measure(balance(name, k), args.batch, args.repeats)) for label, name, k in variants]
     print(f"device: {jax.devices()[0].platform}  cores: {os.cpu_count()}  batch {args.batch}  "
           f"load average {os.getloadavg()[0]:.1f}  timed decision steps {args.repeats}")
-    print(f"{'environment':<34}{'decision steps/s':>18}{'physics steps/s':>17}{'compile s':>11}")
+    print(f"{'environment':<38}{'decision steps/s':>18}{'physics steps/s':>17}{'compile s':>11}")
     for name, r in rows:
-        print(f"{name:<34}{r['decision_steps_per_s']:18,.0f}{r['physics_steps_per_s']:17,.0f}{r['compile_s']:11.1f}"
+        print(f"{name:<38}{r['decision_steps_per_s']:18,.0f}{r['physics_steps_per_s']:17,.0f}{r['compile_s']:11.1f}"
               + ("" if r["finite"] else "  NON-FINITE OBSERVATION"))
     rate = [r["decision_steps_per_s"] for _, r in rows]
-    print(f"ratio ARMAR-4 balance (legs {held}) / iiwa mjx: {rate[1] / rate[0]:.3f}")
-    if args.legs == "fixed":
-        print(f"ratio ARMAR-4 balance (legs welded) / iiwa mjx: {rate[2] / rate[0]:.3f}")
-        print(f"ratio legs welded / legs held (same states): {rate[2] / rate[1]:.2f}")
-
+    for (name, _), value in zip(rows[1:], rate[1:]):
+        print(f"ratio {name} / iiwa mjx: {value / rate[0]:.3f}")
+    for (name, _), value in zip(rows[2:], rate[2:]):
+        print(f"ratio {name} / {rows[1][0]} (same states): {value / rate[1]:.2f}")
 
 if __name__ == "__main__":
     main()

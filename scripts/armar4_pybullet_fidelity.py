@@ -16,10 +16,12 @@ ratio compares the largest tilt change from rest (PyBullet's mesh feet stand 0.0
 over the motions neither model falls in.
 
     python scripts/armar4_pybullet_fidelity.py [--motions 40] [--paths 20] [--seconds 4] [--json out.json]
-        [--model armar4_legs armar4_standing armar4_standing@120]
+        [--model armar4_legs armar4_standing armar4_standing@80]
 
 ``--model`` names our models to compare (registry robots; ``@HZ``: physics rate instead of 240
-Hz): ``armar4_legs`` (legs held by their servos, the default), ``armar4_standing`` (legs welded).
+Hz, a divisor of 240, with the registry's servo bandwidth for it; ``@HZ:OMEGA``: and servos of
+bandwidth OMEGA rad/s): ``armar4_legs`` (legs held by their servos, the default),
+``armar4_standing`` (legs welded; the balance task runs it at 80 Hz: ``armar4_standing@80``).
 
 PyBullet is a test extra (``pip install -e ".[test]"``), never used in training.
 """
@@ -56,12 +58,15 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", help="write the per-motion peak tilts here")
     parser.add_argument("--model", nargs="+", default=["armar4_legs"],
-                        help="our models: registry robot names, optionally @HZ (physics rate)")
+                        help="our models: registry robot names, optionally @HZ (physics rate) or @HZ:OMEGA "
+                             "(and servo bandwidth [rad/s])")
     args = parser.parse_args()
     ours_models = {}
     for spec in args.model:
-        name, _, hz = spec.partition("@")
-        ours_models[spec] = load_robot(name, **({"sim_dt": 1.0 / float(hz)} if hz else {}))
+        name, _, rate = spec.partition("@")
+        hz, _, omega = rate.partition(":")
+        ours_models[spec] = load_robot(name, **({"sim_dt": 1.0 / float(hz)} if hz else {}),
+                                       **({"servo_omega": float(omega)} if omega else {}))
     robot = load_robot("armar4_legs")  # motions and the oracle: the 18 upper-body joints of the full robot
     upper = np.flatnonzero(robot.path_mask)
     lim = robot.limits

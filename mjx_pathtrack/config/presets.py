@@ -58,8 +58,14 @@ def recipe(name: str | None, robot: str = "iiwa", dataset: str = "random") -> di
     return {**RECIPES[name], **ROBOT_RECIPES.get((name, robot, dataset), {})}
 
 
-def preset(robot: str | None = None, task: str | None = None) -> dict[str, Any]:
-    """Flag defaults of the papers' settings for ``task`` (if it has a preset) or else ``robot``."""
+#: settings of the balance task that depend on its legs (``--legs``), on top of its preset
+LEGS_PRESETS = humanoid_balance.LEGS_PRESETS
+
+
+def preset(robot: str | None = None, task: str | None = None, legs: str | None = None) -> dict[str, Any]:
+    """Flag defaults of the papers' settings for ``task`` (if it has a preset) or else ``robot``;
+    the balance task adds those of its ``legs`` (:data:`LEGS_PRESETS`)."""
     if task is not None and task not in TASKS:
         raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
-    return dict(TASK_PRESETS.get(task) or ROBOT_PRESETS.get(robot) or {})
+    extra = LEGS_PRESETS.get(legs, {}) if task == "balance" else {}
+    return {**(TASK_PRESETS.get(task) or ROBOT_PRESETS.get(robot) or {}), **extra}

@@ -171,7 +171,7 @@ def _upgrade_flat(data: dict[str, Any]) -> dict[str, Any]:
 
 #: the environment options with a flat name (``--dt``, ...); every other ``EnvConfig`` field is
 #: reached by its dotted path (``env.substeps``)
-_ENV_OPTIONS = ("dt", "n_next", "knots_frame", "terminate_deviation", "end_tolerance", "end_braking", "end_stop",
+_ENV_OPTIONS = ("dt", "n_next", "substeps", "knots_frame", "terminate_deviation", "end_tolerance", "end_braking", "end_stop",
                 "end_knot_tolerance", "duration")
 
 #: flat option name -> the dotted paths it sets (the command line's ``--name``, sweep grid keys,
@@ -238,7 +238,7 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         if value is not None and not (np.isfinite(value) and value > 0):
             fail(name, f"must be a finite number > 0 (or unset), got {value}")
     for name in ("num_envs", "num_timesteps", "unroll_length", "batch_size", "num_minibatches",
-                 "num_updates_per_batch", "num_evals", "eval_episodes", "n_next"):
+                 "num_updates_per_batch", "num_evals", "eval_episodes", "n_next", "substeps"):
         value = get(name)
         if not value >= 1:
             fail(name, f"must be >= 1, got {value}")
@@ -255,10 +255,13 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
     if (p.batch_size * p.num_minibatches) % p.num_envs:
         fail("batch_size", f"batch_size * num_minibatches ({p.batch_size} * {p.num_minibatches} = "
                            f"{p.batch_size * p.num_minibatches}) must be a multiple of --num-envs ({p.num_envs})")
-    if c.executor == "mjx" or c.task in ("ball_on_plate", "balance"):
+    if c.task != "balance" and (c.executor == "mjx" or c.task == "ball_on_plate"):
         steps = c.env.dt / robots.SIM_DT
         if abs(steps - round(steps)) > 1e-6:
             fail("dt", f"{c.env.dt} s must be a whole multiple of the physics step {robots.SIM_DT:.6g} s with MJX physics")
+        if c.env.substeps != round(steps):
+            fail("substeps", f"with MJX physics (physics step {robots.SIM_DT:.6g} s) the sub-steps are the physics "
+                             f"steps per decision step: {round(steps)} at --dt {c.env.dt}, got {c.env.substeps}")
     if c.task == "tracking":
         try:
             datasets.read_config(c.robot, c.dataset, c.dataset_root)

@@ -15,11 +15,12 @@ armar4_standing 18     ``armar4_fixed_hands`` with the 12 leg joints welded at 0
 =============  ======  ==========================================================================
 
 Simulation model (all robots): time step ``sim_dt`` (default 1/240 s, the papers' PyBullet
-step, i.e. 24 setpoints per 0.1 s decision step); each controlled joint has a position actuator
+step, i.e. 24 setpoints per 0.1 s decision step; the fixed-legs balance task uses 1/80 s); each controlled joint has a position actuator
 (ctrl = setpoint position) and a velocity actuator (ctrl = setpoint velocity, like the papers'
 ``targetVelocities``), so ``ctrl = [q_set, v_set]`` (:meth:`Robot.ctrl`, which also states the
 timing convention). Gains are set per joint
-from the joint-space inertia at the initial pose (``kp = M w^2``, ``kv = 2 zeta M w``) and the
+from the joint-space inertia at the initial pose (``kp = M w^2``, ``kv = 2 zeta M w``; ``w`` 400 rad/s
+at 1/240 s, ``w * sim_dt`` constant at other steps) and the
 integrator is ``implicitfast`` so the large velocity gains are integrated implicitly. There is no
 gravity compensation: the servos are stiff enough that gravity moves the joints by < 1e-4 rad,
 and ``gravcomp`` would cost ~15 % of a batched MJX step. Joint-limit
@@ -63,7 +64,11 @@ POS_BUFFER = 0.035
 DECISION_DT = 0.1
 #: simulation step [s]: the papers' PyBullet step
 SIM_DT = 1.0 / 240.0
-#: servo bandwidth [rad/s] and damping ratio of the joint controllers
+#: servo bandwidth [rad/s] at the papers' physics step :data:`SIM_DT`, and damping ratio of the joint
+#: controllers. At another physics step ``sim_dt`` the default bandwidth keeps ``omega * sim_dt``
+#: (5/3): the position gain is integrated explicitly, so a coarser step needs a softer servo
+#: (measured on ARMAR-4 against PyBullet: at 120 Hz 400 rad/s topples it on 40 % of the time-optimal
+#: paths where PyBullet's falls on 15 %; 200 rad/s agrees as well as 240 Hz does)
 SERVO_OMEGA = 400.0
 SERVO_ZETA = 1.0
 #: ``armar4_standing``'s sole contact (time constant [s], damping ratio; MuJoCo's default 0.02, 1):
@@ -137,7 +142,7 @@ ROBOTS: dict[str, _Spec] = {
 }
 
 _OPTIONS = {"dt": DECISION_DT, "jerk_factor": 1.0, "sim_dt": SIM_DT, "pos_buffer": POS_BUFFER,
-            "servo_omega": SERVO_OMEGA, "servo_zeta": SERVO_ZETA}
+            "servo_omega": None, "servo_zeta": SERVO_ZETA}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -255,7 +260,8 @@ def load_robot(name: str, **options) -> Robot:
 
     Options: ``dt`` decision step [s] (0.1), ``jerk_factor`` (1.0; jerk = factor * 2 a / dt),
     ``sim_dt`` physics step [s] (1/240), ``pos_buffer`` [rad] subtracted from URDF position limits
-    (0.035), ``servo_omega`` [rad/s] and ``servo_zeta`` of the joint servos.
+    (0.035), ``servo_omega`` [rad/s] (default :data:`SERVO_OMEGA` ``* SIM_DT / sim_dt``) and
+    ``servo_zeta`` of the joint servos.
     Raises ``ValueError`` for unknown names/options, ``ImportError`` naming the ``humanoids``
     extra when an ARMAR robot is asked for without ``armar`` installed.
     """
@@ -265,9 +271,13 @@ def load_robot(name: str, **options) -> Robot:
     if unknown:
         raise ValueError(f"unknown option(s) {sorted(unknown)} for load_robot; known: {sorted(_OPTIONS)}")
     opts = {**_OPTIONS, **options}
+    if not opts["sim_dt"] > 0:
+        raise ValueError(f"sim_dt must be > 0 s, got {opts['sim_dt']}")
     n_substeps = int(round(opts["dt"] / opts["sim_dt"]))
     if n_substeps < 1 or abs(n_substeps * opts["sim_dt"] - opts["dt"]) > 1e-9:
         raise ValueError(f"dt={opts['dt']} must be a whole multiple of sim_dt={opts['sim_dt']}")
+    if opts["servo_omega"] is None:
+        opts["servo_omega"] = SERVO_OMEGA * SIM_DT / opts["sim_dt"]
     return _build(name, ROBOTS[name], opts, n_substeps)
 
 

@@ -23,8 +23,8 @@ PUSH = 2.5  # roll rate [rad/s] given to the pelvis of the pushed robot
 
 @pytest.fixture(scope="module")
 def robot():
-    """The fixed-legs task's robot (legs welded)."""
-    return load_robot(H.STANDING_ROBOT)
+    """The fixed-legs task's robot (legs welded) at the task's physics rate (80 Hz)."""
+    return load_robot(H.STANDING_ROBOT, sim_dt=0.1 / H.PHYSICS_SUBSTEPS)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,8 @@ def small_paths(robot, n_paths=2, n_knots=5, seed=0):
 
 
 def make(robot, legs="fixed", base_sensor=True, duration=STEPS * 0.1):
-    cfg = EnvConfig(duration=duration, start_range=(0.0, 0.0), min_fraction=1.0, reward=H.BALANCE_WEIGHTS)
+    cfg = EnvConfig(duration=duration, start_range=(0.0, 0.0), min_fraction=1.0, reward=H.BALANCE_WEIGHTS,
+                    substeps=robot.n_substeps)
     return H.HumanoidBalanceEnv(robot, small_paths(robot), 0.2, cfg, H.BalanceOptions(legs=legs, base_sensor=base_sensor))
 
 
@@ -130,6 +131,20 @@ def test_training_env_uses_welded_legs_when_they_are_fixed(legs, robot_name):
     cfg = TrainConfig().replace(task="balance", robot="armar4", executor="mjx", legs=legs)
     env = H.make_env(cfg, "test")
     assert env.robot.name == robot_name and env.action_size == (18 if legs == "fixed" else 30)
+    assert env.robot.mj_model.opt.timestep == pytest.approx(1 / 240)  # the config's 24 sub-steps: 240 Hz
+
+
+def test_training_env_runs_its_physics_at_the_configs_substeps():
+    """``--substeps`` is the physics rate (the task's preset: 8, i.e. 80 Hz); the servos soften
+    with the coarser step (bandwidth x sim_dt constant) and the executor takes as many steps."""
+    cfg = TrainConfig().replace(task="balance", robot="armar4", executor="mjx", substeps=H.PHYSICS_SUBSTEPS)
+    env = H.make_env(cfg, "test")
+    fine = load_robot(H.STANDING_ROBOT)
+    assert env.robot.mj_model.opt.timestep == pytest.approx(0.1 / H.PHYSICS_SUBSTEPS)
+    assert env.robot.n_substeps == env.executor.substeps == env.config.substeps == H.PHYSICS_SUBSTEPS
+    n = env.robot.n_joints
+    ratio = env.robot.mj_model.actuator_gainprm[:n, 0] / fine.mj_model.actuator_gainprm[:n, 0]  # kp ~ omega^2
+    np.testing.assert_allclose(ratio, (H.PHYSICS_SUBSTEPS / 24) ** 2, rtol=1e-6)
 
 
 def test_balance_weights_scale_only_the_balance_terms():

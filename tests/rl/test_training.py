@@ -155,6 +155,9 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     args, cfg = cli.parse_args(["--task", "balance", "--legs", "controlled", "--alpha", "3"])
     assert (cfg.task, cfg.balance.legs, cfg.robot, cfg.executor, cfg.balance.reward) == ("balance", "controlled", "armar4", "mjx", 1.0)
     assert cfg.env.reward.distance == 3.0 and cfg.env.duration == 20.0 and args.out == "runs/balance_controlled"  # explicit flags win
+    assert cfg.env.substeps == 24  # controlled legs: the papers' 240 Hz physics; fixed legs 80 Hz unless given
+    assert cli.parse_args(["--task", "balance"])[1].env.substeps == 8
+    assert cli.parse_args(["--task", "balance", "--substeps", "24"])[1].env.substeps == 24
     assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
     with pytest.raises(SystemExit):
         cli.parse_args(["--task", "juggling"])
@@ -459,6 +462,8 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     (["--learning-rate", "inf"], "--learning-rate: must be a finite number > 0"),
     (["--dataset", "spirals"], "--dataset: no dataset config .*datasets of iiwa: .*random"),
     (["--executor", "mjx", "--dt", "0.11"], "--dt: 0.11 s must be a whole multiple of the physics step"),
+    (["--substeps", "0"], "--substeps: must be >= 1"),
+    (["--task", "ball_on_plate", "--substeps", "12"], "--substeps: with MJX physics .* 24 at --dt 0.1, got 12"),
     (["--gae-lambda", "1.5"], "--gae-lambda: must be in"),
     (["--final-noise-std", "0"], "--final-noise-std: must be a finite number > 0"),
     (["--final-learning-rate", "0"], "--final-learning-rate: must be a finite number > 0"),

@@ -49,6 +49,22 @@ def test_unknown_option_and_bad_time_step():
         load_robot("iiwa", gain=3)
     with pytest.raises(ValueError, match="whole multiple"):
         load_robot("iiwa", dt=0.1, sim_dt=0.03)
+    with pytest.raises(ValueError, match="sim_dt must be > 0"):
+        load_robot("iiwa", sim_dt=0.0)
+
+
+def test_servo_bandwidth_follows_the_physics_step_unless_given():
+    """Default bandwidth 400 rad/s at 1/240 s, omega * sim_dt constant otherwise (kp = M omega^2,
+    kv = 2 zeta M omega); an explicit ``servo_omega`` wins."""
+    n = 7
+    gains = lambda r: (r.mj_model.actuator_gainprm[:n, 0], r.mj_model.actuator_gainprm[n:2 * n, 0])  # noqa: E731
+    kp240, kv240 = gains(load_robot("iiwa"))
+    kp120, kv120 = gains(load_robot("iiwa", sim_dt=1 / 120))
+    np.testing.assert_allclose(kp120, kp240 / 4, rtol=1e-6)
+    np.testing.assert_allclose(kv120, kv240 / 2, rtol=1e-6)
+    kp, kv = gains(load_robot("iiwa", sim_dt=1 / 120, servo_omega=400.0))
+    np.testing.assert_allclose(kp, kp240, rtol=1e-6)
+    np.testing.assert_allclose(kv, kv240, rtol=1e-6)
 
 
 def test_missing_armar_names_the_extra(monkeypatch):
