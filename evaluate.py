@@ -4,6 +4,7 @@
     python evaluate.py runs/iiwa_random/export          # exported policy (manifest.json)
     python evaluate.py RUN --paths my_paths.csv         # user paths (datasets import format)
     python evaluate.py RUN --episodes 50 --seed 1 --full-paths --out eval/
+    python evaluate.py runs/armar4_target_point --floating-base --terminate-deviation inf  # ARMAR-4 on the floor: falls
 
 Writes metrics.json, episodes.csv and PNG plots of one episode to --out (default RUN/eval).
 """
@@ -54,6 +55,10 @@ def parse_args(argv=None):
     parser.add_argument("--ball-physics", choices=("arm", "plate", "rolling"), default=None,
                         help="ball_on_plate: evaluate in the full-arm scene (arm) or with the plate's motion "
                              "prescribed (plate); default: the scene the run trained in")
+    parser.add_argument("--floating-base", action="store_true",
+                        help="a plain ARMAR-4 tracking run (robot armar4) standing on the floor, legs fixed (welded, "
+                             "MJX physics at 80 Hz, no pelvis observation): the papers' Table VIII 'no balancing "
+                             "reward' row; reports how often the robot fell")
     parser.add_argument("--no-toppra", action="store_true", help="skip the TOPP-RA baseline")
     parser.add_argument("--jerk-optimum", action="store_true",
                         help="also the jerk-limited time-optimal duration of every episode (TOPP3 of copp-py, ~1 s "
@@ -91,7 +96,7 @@ def main(argv=None) -> int:
                                                             "end_knot_tolerance", "end_tolerance", "ball_physics")}
         overrides = {name: value for name, value in overrides.items() if value is not None}
         source = dataclasses.replace(source, config=source.config.replace(**overrides))
-        env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths)
+        env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths, args.floating_base)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
         return 2
@@ -110,8 +115,9 @@ def main(argv=None) -> int:
             "terminate_deviation": source.config.env.terminate_deviation, "end_tolerance": source.config.env.end_tolerance,
             "end_braking": source.config.env.end_braking, "end_stop": source.config.env.end_stop,
             "end_knot_tolerance": source.config.env.end_knot_tolerance, "ball_physics": source.config.ball_on_plate.physics,
-            "plot_episode": episode}
+            "floating_base": args.floating_base, "plot_episode": episode}
     physics = f", {source.config.ball_on_plate.physics} ball" if ball_task else ""
+    physics += f", on the floor, legs fixed, {env.robot.n_substeps / env.robot.dt:.0f} Hz physics" if args.floating_base else ""
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if whole else f'sub-paths, seed {args.seed}'}"
              f"{physics}{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))

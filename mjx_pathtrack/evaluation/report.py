@@ -145,11 +145,20 @@ def user_paths(file: str, robot: str) -> S.Path:
 
 
 def build_env(source: PolicySource, paths_file: str | None = None, split: str = "test",
-              full_paths: bool = False) -> tuple[PathTrackingEnv, robots.Robot, str]:
+              full_paths: bool = False, floating_base: bool = False) -> tuple[PathTrackingEnv, robots.Robot, str]:
     """The evaluation environment: the training config's (termination, weights, executor), the
     training dataset's observation scale, on ``split`` of the training dataset or on the paths of
-    ``paths_file``; ``full_paths`` evaluates whole paths instead of random sub-paths."""
+    ``paths_file``; ``full_paths`` evaluates whole paths instead of random sub-paths;
+    ``floating_base``: a plain ARMAR-4 tracking run standing on the floor, legs fixed, MJX physics
+    (:func:`~mjx_pathtrack.envs.tasks.humanoid_balance.floating_base_config`)."""
     cfg = source.config
+    if floating_base:
+        from mjx_pathtrack.envs.tasks import humanoid_balance
+
+        try:
+            cfg = humanoid_balance.floating_base_config(cfg)
+        except ValueError as e:
+            raise EvaluationError(f"--floating-base: {e}") from e
     robot = robots.load_robot(cfg.robot, dt=cfg.env.dt)
     if cfg.task == "ball_on_plate":  # whole paths, ball always simulated; episodes end when it falls
         from mjx_pathtrack.envs.tasks.ball_on_plate import make_task_env
@@ -171,7 +180,8 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
     if cfg.task == "balance":
         from mjx_pathtrack.envs.tasks import humanoid_balance
 
-        env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg)
+        env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg,
+                                        base_sensor=not floating_base)
         return env, humanoid_balance.eval_robot(cfg), label
     return registry.tracking_env(robot, paths, max_dis, env_cfg, cfg.executor), robot, label
 

@@ -137,11 +137,12 @@ def test_limit_ratios_flag_a_violation():
 # -- evaluate.py ---------------------------------------------------------------------------------
 
 
-def _write_run(run: Path, layers=(16,)):
-    """A run directory with untrained (random) parameters: config.json + params.pkl."""
+def _write_run(run: Path, layers=(16,), **options):
+    """A run directory with untrained (random) parameters: config.json + params.pkl (``options``:
+    flat options of the run's config)."""
     from brax.training.acme import running_statistics, specs
 
-    cfg = TrainConfig().replace(policy_layers=layers, value_layers=(8,), duration=4.0)
+    cfg = TrainConfig().replace(policy_layers=layers, value_layers=(8,), duration=4.0, **options)
     env = make_env(cfg, "test")
     nets = ppo_networks(cfg.network)(env.observation_size, env.action_size,
                              preprocess_observations_fn=running_statistics.normalize)
@@ -242,6 +243,23 @@ def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run):
     assert np.all(np.asarray(a) != np.asarray(b))  # fresh noise for every key, episode and joint
     noise = np.asarray(a - mean(obs, jax.random.PRNGKey(0)))
     assert abs(noise.mean()) < 0.05 and 0.5 * cfg.network.init_noise_std < noise.std() < 2 * cfg.network.init_noise_std
+
+
+def test_floating_base_runs_a_plain_armar4_tracking_policy_on_the_floor(tiny_run, tmp_path):
+    """``--floating-base`` (the papers' Table VIII "no balancing reward" row): the tracking run's
+    policy (226 observations, no pelvis) drives the welded-legs robot standing on the floor at 80 Hz;
+    the report counts falls. Other runs are refused naming the flag."""
+    run = tmp_path / "armar4"
+    cfg, *_ = _write_run(run, robot="armar4", dataset="target_point", n_next=8)
+    source = R.load_policy_source(str(run))
+    env, robot, label = R.build_env(source, full_paths=True, floating_base=True)
+    assert env.task_name == "balance" and env.robot.name == "armar4_standing" and env.robot.n_substeps == 8
+    assert env.observation_size == 226 and env.action_size == 18 and robot.name == "armar4"
+    summary, table, _ = R.run_evaluation(env, source.policy, robot, episodes=2, timing_decisions=0, topp=False)
+    assert summary["episodes"] == 2 and "task_failed_rate" in summary and summary["task_failures"]
+    assert label == "armar4/target_point/test"
+    with pytest.raises(R.EvaluationError, match="--floating-base: .*plain tracking run of robot 'armar4'.*'iiwa'"):
+        R.build_env(R.load_policy_source(str(tiny_run[0])), floating_base=True)
 
 
 def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):

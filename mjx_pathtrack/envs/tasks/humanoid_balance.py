@@ -263,12 +263,13 @@ LEGS_PRESETS = {"fixed": dict(substeps=PHYSICS_SUBSTEPS), "controlled": dict(sub
 
 
 def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis: float | None = None,
-             env_config: EnvConfig | None = None, root=None) -> HumanoidBalanceEnv:
+             env_config: EnvConfig | None = None, root=None, base_sensor: bool = True) -> HumanoidBalanceEnv:
     """The balance environment of a :class:`~mjx_pathtrack.config.run.TrainConfig` (``task="balance"``,
     ``robot="armar4"``: the dataset of ARMAR-4's upper-body paths; ``balance``: :class:`TaskConfig`).
     ``paths``/``max_dis``/``env_config`` replace the dataset split, its knot spacing and the
     config's :class:`EnvConfig` (evaluation on user paths or whole paths); ``root``: the dataset
-    root (default ``config.dataset_root``)."""
+    root (default ``config.dataset_root``); ``base_sensor`` false: no pelvis observation (a plain
+    tracking policy on the floating base, :func:`floating_base_config`)."""
     from mjx_pathtrack.paths import datasets
     from mjx_pathtrack.robots import registry as robots
 
@@ -290,7 +291,21 @@ def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis:
     if paths is None:
         paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
     env_config = config.env_config() if env_config is None else env_config
-    return HumanoidBalanceEnv(robot, paths, max_dis, env_config, BalanceOptions(legs=config.balance.legs))
+    return HumanoidBalanceEnv(robot, paths, max_dis, env_config,
+                              BalanceOptions(legs=config.balance.legs, base_sensor=base_sensor))
+
+
+def floating_base_config(config):
+    """The balance-task config that runs a plain ARMAR-4 tracking run's policy (``robot="armar4"``,
+    trained on the fixed base) standing on the floor with its legs fixed: the papers' Table VIII
+    "no balancing reward" row, which evaluates the plain target-point net on the floating base.
+    Its training settings stay; MJX physics at the fixed-legs rate, no balance reward. Build the
+    environment with ``make_env(..., base_sensor=False)``: the policy never saw the pelvis."""
+    if config.task != "tracking" or config.robot != DATASET_ROBOT:
+        raise ValueError(f"a floating-base evaluation takes a plain tracking run of robot {DATASET_ROBOT!r} "
+                         f"(ARMAR-4's upper body), got task {config.task!r} on robot {config.robot!r}")
+    return config.replace(task="balance", executor="mjx", legs="fixed", balance_reward=0.0,
+                          substeps=LEGS_PRESETS["fixed"]["substeps"])
 
 
 def eval_robot(config):
