@@ -68,6 +68,12 @@ def observation_layout(n_joints: int, n_path: int, n_next: int,
     return layout
 
 
+def env_observation_layout(env) -> list[dict]:
+    """:func:`observation_layout` of a path-tracking environment (its task's blocks included)."""
+    return observation_layout(env.limits.n_joints, len(env.path_joints), int(env.config.n_next),
+                              env.extra_observation_blocks())
+
+
 def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, robot_name: str,
                   joint_names, run_config: str | None = None) -> Path:
     """Write ``out_dir/{policy.jaxexport, manifest.json}`` for Brax PPO ``params`` on ``env``
@@ -104,8 +110,7 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
                    "jerk": _finite_or_none(lim.jerk)},
         "observation_size": obs_size,
         "action_size": act_size,
-        "observation_layout": observation_layout(lim.n_joints, len(env.path_joints), int(env.config.n_next),
-                                                 env.extra_observation_blocks()),
+        "observation_layout": env_observation_layout(env),
         "input": {"shape": ["batch", obs_size], "dtype": "float32", "range": [-1.0, 1.0]},
         "output": {"shape": ["batch", act_size], "dtype": "float32", "range": [-1.0, 1.0],
                    "meaning": "action per joint, mapped into the safe acceleration range"},

@@ -31,7 +31,7 @@ from mjx_pathtrack.rl import ppo
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.envs import registry
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
-from mjx_pathtrack.deploy.export import export_policy
+from mjx_pathtrack.deploy.export import env_observation_layout, export_policy
 from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
 from mjx_pathtrack.paths.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
@@ -180,12 +180,19 @@ def _host(tree):
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
 
-def warm_start(learner, source: str | os.PathLike, devices: int):
+def warm_start(learner, source: str | os.PathLike, devices: int, layout: list[dict] | None = None):
     """``learner`` with the policy, value and observation-normaliser parameters of the finished
     run in directory ``source`` (its ``params.pkl``, :func:`_brax_params`' layout), replicated
-    over ``devices``; the optimiser state, environments and keys stay ``learner``'s. Raises
-    :class:`RunDirError` naming the first parameter whose shape differs (another network size,
-    observation or action size)."""
+    over ``devices``; the optimiser state, environments and keys stay ``learner``'s.
+
+    ``layout``: this run's observation layout (:func:`~mjx_pathtrack.deploy.export.observation_layout`).
+    When the source's (its ``export/manifest.json``) is a leading part of it, the observations
+    this run adds (a task's sensor blocks, e.g. the pelvis of the balance task after a plain
+    tracking run) enter with zero weights in both networks' first layers and a unit normaliser
+    (mean 0, std 1): the warm policy and value start as the source's, blind to the new inputs.
+
+    Raises :class:`RunDirError` naming the first parameter whose shape still differs (another
+    network size, observation or action size)."""
     path = FsPath(source) / "params.pkl"
     try:
         loaded = pickle.loads(path.read_bytes())
@@ -197,9 +204,18 @@ def warm_start(learner, source: str | os.PathLike, devices: int):
     if len(new_leaves) != len(own_leaves):
         raise RunDirError(f"--init-from: {path} holds {len(new_leaves)} arrays, this run's networks "
                           f"{len(own_leaves)}: another network layout")
+    at, extra = _added_observations(FsPath(source), layout)
+    count = float(int(loaded[0].count)) if extra else None  # observations the normaliser has seen (brax's UInt64)
     out = []
     for (where, mine), theirs in zip(own_leaves, new_leaves):
         theirs = jnp.asarray(theirs, mine.dtype)
+        mine_shape = mine.shape[1:] if devices > 1 else mine.shape
+        if extra and theirs.ndim >= 1 and theirs.shape[1:] == mine_shape[1:] \
+                and mine_shape[0] - theirs.shape[0] == extra:
+            name = jax.tree_util.keystr(where[1:])
+            fill = 1.0 if name.endswith("std") else count if name.endswith("summed_variance") else 0.0
+            theirs = jnp.concatenate([theirs[:at], jnp.full((extra,) + theirs.shape[1:], fill, theirs.dtype),
+                                      theirs[at:]])
         if devices > 1:
             theirs = jnp.broadcast_to(theirs, (devices,) + theirs.shape)
         if theirs.shape != mine.shape:
@@ -210,6 +226,19 @@ def warm_start(learner, source: str | os.PathLike, devices: int):
         out.append(theirs)
     normalizer, policy, value = jax.tree.unflatten(own_tree, out)
     return learner._replace(normalizer_params=normalizer, params=learner.params.replace(policy=policy, value=value))
+
+
+def _added_observations(source: FsPath, layout: list[dict] | None) -> tuple[int, int]:
+    """``(index, count)``: where this run's observations go beyond the source run's and how many
+    (``(0, 0)`` when they are the same, unknown, or the source's layout is not a leading part)."""
+    manifest = source / "export" / "manifest.json"
+    if layout is None or not manifest.is_file():
+        return 0, 0
+    theirs = json.loads(manifest.read_text()).get("observation_layout") or []
+    if not theirs or len(theirs) >= len(layout) or layout[:len(theirs)] != theirs:
+        return 0, 0
+    end = theirs[-1]["start"] + theirs[-1]["size"]
+    return end, sum(block["size"] for block in layout[len(theirs):])
 
 
 def _brax_params(learner, devices: int):
@@ -283,7 +312,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     if checkpoint is None:
         learner, start_step, wall, evals = program.init(config.seed), 0, 0.0, {}
         if config.init_from is not None:
-            learner = warm_start(learner, config.init_from, program.devices)
+            learner = warm_start(learner, config.init_from, program.devices, env_observation_layout(env))
         truncate_progress(run_dir / "progress.csv", -1)
     else:
         if int(checkpoint["devices"]) != program.devices:

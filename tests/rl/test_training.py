@@ -108,6 +108,59 @@ def test_init_from_starts_where_the_source_run_ended(tiny_run, tmp_path):
     assert TrainConfig.from_json((tmp_path / "warm" / "config.json").read_text()).init_from == str(out)
 
 
+def test_init_from_a_run_with_fewer_observations_adds_them_with_zero_weights(tiny_run, tmp_path):
+    """A source whose observation layout is a leading part of this run's (here: the tiny run
+    without its last block, the 8 knot distances; in use: a plain tracking run before the balance
+    task's pelvis blocks): its parameters come in unchanged, the added inputs with zero weights in
+    both networks' first layers and a unit normaliser. Another layout is still refused."""
+    from mjx_pathtrack.rl import training
+    from mjx_pathtrack.rl.checkpoint import RunDirError
+
+    out, config, _, _ = tiny_run
+    layout = json.loads((out / "export" / "manifest.json").read_text())["observation_layout"]
+    block = layout[-1]
+    cut = np.arange(block["start"], block["start"] + block["size"])  # 86..93; the value net's 3 extra after
+    full = pickle.loads((out / "params.pkl").read_bytes())
+    first_kernel = lambda net: net["params"]["MLP_0"]["hidden_0"]["kernel"] if "MLP_0" in net["params"] \
+        else net["params"]["hidden_0"]["kernel"]  # noqa: E731
+    norm, policy, value = full
+
+    def trim(x):
+        return np.delete(np.asarray(x), cut, axis=0)
+
+    small_norm = norm.replace(mean=trim(norm.mean), std=trim(norm.std), summed_variance=trim(norm.summed_variance))
+    small = jax.tree.map(np.asarray, (small_norm, policy, value))
+    for net in small[1:]:
+        kernel = first_kernel(net)
+        if "MLP_0" in net["params"]:
+            net["params"]["MLP_0"]["hidden_0"]["kernel"] = trim(kernel)
+        else:
+            net["params"]["hidden_0"]["kernel"] = trim(kernel)
+    source = tmp_path / "fewer"
+    (source / "export").mkdir(parents=True)
+    (source / "params.pkl").write_bytes(pickle.dumps(small))
+    (source / "export" / "manifest.json").write_text(json.dumps({"observation_layout": layout[:-1]}))
+    env = make_env(config, "train")
+    learner = training._program(config, env).init(config.seed)
+    warm = training.warm_start(learner, source, 1, layout)
+    got_norm = warm.normalizer_params
+    count = float(int(norm.count))
+    keep = np.setdiff1d(np.arange(len(np.asarray(norm.mean))), cut)
+    np.testing.assert_array_equal(np.asarray(got_norm.mean)[keep], np.asarray(norm.mean)[keep])
+    np.testing.assert_array_equal(np.asarray(got_norm.mean)[cut], 0.0)
+    np.testing.assert_array_equal(np.asarray(got_norm.std)[cut], 1.0)
+    np.testing.assert_allclose(np.asarray(got_norm.summed_variance)[cut], count, rtol=1e-6)
+    for got, was in ((warm.params.policy, policy), (warm.params.value, value)):
+        k_got, k_was = np.asarray(first_kernel(got)), np.asarray(first_kernel(was))
+        np.testing.assert_array_equal(k_got[cut], 0.0)
+        np.testing.assert_array_equal(k_got[np.setdiff1d(np.arange(len(k_got)), cut)], k_was[np.setdiff1d(np.arange(len(k_was)), cut)])
+    with pytest.raises(RunDirError, match="observation normaliser parameter .mean has shape"):  # without the layouts
+        training.warm_start(learner, source, 1, None)
+    other = [dict(b, name="x" if i == 0 else b["name"]) for i, b in enumerate(layout)]
+    with pytest.raises(RunDirError, match="shape"):  # a layout the source's is not a leading part of
+        training.warm_start(learner, source, 1, other)
+
+
 def test_init_from_refuses_other_networks_and_missing_runs(tiny_run, tmp_path):
     from mjx_pathtrack.config.options import ConfigError
     from mjx_pathtrack.rl.checkpoint import RunDirError
