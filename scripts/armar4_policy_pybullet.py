@@ -39,7 +39,7 @@ from mjx_pathtrack.evaluation import rollout as E  # noqa: E402
 from mjx_pathtrack.robots.registry import load_robot  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from pybullet_armar4 import HZ, PyBulletArmar4, mujoco_tilts  # noqa: E402
+from pybullet_armar4 import HZ, PyBulletArmar4, load_model, mujoco_tilts  # noqa: E402
 
 
 def main() -> int:
@@ -49,7 +49,8 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0, help="sub-path draw (as evaluate.py's)")
     parser.add_argument("--stochastic", action="store_true", help="sampled actions instead of the deterministic policy")
     parser.add_argument("--model", default="armar4_standing@80",
-                        help="our model: registry robot name, optionally @HZ (physics rate, a divisor of 240)")
+                        help="our model: registry robot name, optionally @HZ (physics rate, a divisor of 240) or @HZ:OMEGA "
+                             "(and servo bandwidth [rad/s])")
     args = parser.parse_args()
     source = R.load_policy_source(args.run, deterministic=not args.stochastic)
     cfg = source.config
@@ -62,10 +63,10 @@ def main() -> int:
     env, _, label = R.build_env(source)
     indices = np.arange(args.episodes) % env.n_paths
     ro = E.rollout(env, source.policy, jax.random.fold_in(jax.random.PRNGKey(args.seed), 0), indices)
-    name, _, hz = args.model.partition("@")
-    ours_robot = load_robot(name, **({"sim_dt": 1.0 / float(hz)} if hz else {}))
-    bullet = PyBulletArmar4(load_robot("armar4_legs"))
-    upper_bullet = np.flatnonzero(load_robot("armar4_legs").path_mask)
+    ours_robot = load_model(args.model)
+    oracle_robot = load_robot("armar4_legs")  # the PyBullet robot: the 18 upper-body joints of the full robot
+    bullet = PyBulletArmar4(oracle_robot)
+    upper_bullet = np.flatnonzero(oracle_robot.path_mask)
     upper_ours = np.flatnonzero(ours_robot.path_mask)
     rows, t0 = [], time.monotonic()
     for b in range(len(indices)):

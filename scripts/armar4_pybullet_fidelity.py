@@ -48,7 +48,7 @@ from mjx_pathtrack.paths import datasets  # noqa: E402
 from mjx_pathtrack.robots.registry import load_robot  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from pybullet_armar4 import HZ, PyBulletArmar4, agent_motions, mujoco_tilts, toppra_motion  # noqa: E402
+from pybullet_armar4 import HZ, PyBulletArmar4, agent_motions, load_model, mujoco_tilts, toppra_motion  # noqa: E402
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -61,12 +61,7 @@ def main() -> int:
                         help="our models: registry robot names, optionally @HZ (physics rate) or @HZ:OMEGA "
                              "(and servo bandwidth [rad/s])")
     args = parser.parse_args()
-    ours_models = {}
-    for spec in args.model:
-        name, _, rate = spec.partition("@")
-        hz, _, omega = rate.partition(":")
-        ours_models[spec] = load_robot(name, **({"sim_dt": 1.0 / float(hz)} if hz else {}),
-                                       **({"servo_omega": float(omega)} if omega else {}))
+    ours_models = {spec: load_model(spec) for spec in args.model}
     robot = load_robot("armar4_legs")  # motions and the oracle: the 18 upper-body joints of the full robot
     upper = np.flatnonzero(robot.path_mask)
     lim = robot.limits

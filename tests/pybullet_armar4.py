@@ -92,6 +92,17 @@ def tilt_of(z_axis: np.ndarray) -> float:
     return float(np.arccos(np.clip(z_axis[2], -1.0, 1.0)))
 
 
+def load_model(spec: str):
+    """Our model named ``NAME[@HZ[:OMEGA]]``: registry robot NAME at physics rate HZ (a divisor of
+    240; default the registry's) with servos of bandwidth OMEGA rad/s (default the registry's for HZ)."""
+    from mjx_pathtrack.robots.registry import load_robot
+
+    name, _, rate = spec.partition("@")
+    hz, _, omega = rate.partition(":")
+    return load_robot(name, **({"sim_dt": 1.0 / float(hz)} if hz else {}),
+                      **({"servo_omega": float(omega)} if omega else {}))
+
+
 def mujoco_tilts(robot, upper: np.ndarray, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Pelvis tilt [rad] per physics step of our model replaying upper-body setpoints ``q, v [K, m]``
     given at 240 Hz (a model whose time step is a multiple of 1/240 s takes every such sample)."""
