@@ -123,6 +123,15 @@ def action_to_acceleration(action: Array, a_min: Array, a_max: Array) -> Array:
     return a_min + 0.5 * (1.0 + action) * (a_max - a_min)
 
 
+def acceleration_to_action(acc: Array, a_min: Array, a_max: Array) -> Array:
+    """Inverse of :func:`action_to_acceleration`: the action in [-1, 1] ``[..., n]`` that gives
+    acceleration ``acc`` [rad/s^2] (clipped into ``[a_min, a_max]``); 0 where the range is a point."""
+    span = a_max - a_min
+    wide = span > 0
+    action = -1.0 + 2.0 * (jnp.clip(acc, a_min, a_max) - a_min) / jnp.where(wide, span, 1.0)
+    return jnp.where(wide, jnp.clip(action, -1.0, 1.0), 0.0)
+
+
 class SafeRange(NamedTuple):
     a_min: Array
     a_max: Array

@@ -28,10 +28,11 @@ import numpy as np
 
 from mjx_pathtrack import _jax_compat
 from mjx_pathtrack.rl import ppo
+from mjx_pathtrack.rl import warm_start as warm
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.envs import registry
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
-from mjx_pathtrack.deploy.export import env_observation_layout, export_policy
+from mjx_pathtrack.deploy.export import export_policy
 from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
 from mjx_pathtrack.paths.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
@@ -180,65 +181,21 @@ def _host(tree):
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
 
-def warm_start(learner, source: str | os.PathLike, devices: int, layout: list[dict] | None = None):
-    """``learner`` with the policy, value and observation-normaliser parameters of the finished
-    run in directory ``source`` (its ``params.pkl``, :func:`_brax_params`' layout), replicated
-    over ``devices``; the optimiser state, environments and keys stay ``learner``'s.
-
-    ``layout``: this run's observation layout (:func:`~mjx_pathtrack.deploy.export.observation_layout`).
-    When the source's (its ``export/manifest.json``) is a leading part of it, the observations
-    this run adds (a task's sensor blocks, e.g. the pelvis of the balance task after a plain
-    tracking run) enter with zero weights in both networks' first layers and a unit normaliser
-    (mean 0, std 1): the warm policy and value start as the source's, blind to the new inputs.
-
-    Raises :class:`RunDirError` naming the first parameter whose shape still differs (another
-    network size, observation or action size)."""
-    path = FsPath(source) / "params.pkl"
-    try:
-        loaded = pickle.loads(path.read_bytes())
-    except (OSError, pickle.UnpicklingError, EOFError) as e:
-        raise RunDirError(f"--init-from: cannot read {path} ({e})") from e
-    own = (learner.normalizer_params, learner.params.policy, learner.params.value)
-    own_leaves, own_tree = jax.tree.flatten_with_path(own)
-    new_leaves, new_tree = jax.tree.flatten(loaded)
-    if len(new_leaves) != len(own_leaves):
-        raise RunDirError(f"--init-from: {path} holds {len(new_leaves)} arrays, this run's networks "
-                          f"{len(own_leaves)}: another network layout")
-    at, extra = _added_observations(FsPath(source), layout)
-    count = float(int(loaded[0].count)) if extra else None  # observations the normaliser has seen (brax's UInt64)
-    out = []
-    for (where, mine), theirs in zip(own_leaves, new_leaves):
-        theirs = jnp.asarray(theirs, mine.dtype)
-        mine_shape = mine.shape[1:] if devices > 1 else mine.shape
-        if extra and theirs.ndim >= 1 and theirs.shape[1:] == mine_shape[1:] \
-                and mine_shape[0] - theirs.shape[0] == extra:
-            name = jax.tree_util.keystr(where[1:])
-            fill = 1.0 if name.endswith("std") else count if name.endswith("summed_variance") else 0.0
-            theirs = jnp.concatenate([theirs[:at], jnp.full((extra,) + theirs.shape[1:], fill, theirs.dtype),
-                                      theirs[at:]])
-        if devices > 1:
-            theirs = jnp.broadcast_to(theirs, (devices,) + theirs.shape)
-        if theirs.shape != mine.shape:
-            part = ("observation normaliser", "policy", "value")[where[0].idx]
-            raise RunDirError(f"--init-from: {path}: {part} parameter {jax.tree_util.keystr(where[1:])} has shape "
-                              f"{tuple(theirs.shape)}, this run's {tuple(mine.shape)} (network, observation or action "
-                              f"size differ)")
-        out.append(theirs)
-    normalizer, policy, value = jax.tree.unflatten(own_tree, out)
-    return learner._replace(normalizer_params=normalizer, params=learner.params.replace(policy=policy, value=value))
-
-
-def _added_observations(source: FsPath, layout: list[dict] | None) -> tuple[int, int]:
-    """``(index, count)``: where this run's observations go beyond the source run's and how many
-    (``(0, 0)`` when they are the same, unknown, or the source's layout is not a leading part)."""
-    manifest = source / "export" / "manifest.json"
-    if layout is None or not manifest.is_file():
-        return 0, 0
-    theirs = json.loads(manifest.read_text()).get("observation_layout") or []
-    if not theirs or len(theirs) >= len(layout) or layout[:len(theirs)] != theirs:
-        return 0, 0
-    end = theirs[-1]["start"] + theirs[-1]["size"]
-    return end, sum(block["size"] for block in layout[len(theirs):])
+def _warm_start(config: TrainConfig, program: _Program, learner, env, joint_names, verbose: bool):
+    """``learner`` started from ``config.init_from``'s networks (:mod:`mjx_pathtrack.rl.warm_start`);
+    joints that run did not drive are fitted to hold still."""
+    layout = warm.PolicyLayout.of_env(env, joint_names)
+    learner, new = warm.warm_start(learner, config.init_from, program.devices, layout)
+    if len(new):
+        learner, fit = warm.fit_new_joints(program.core.make_policy, learner, env, new, program.devices,
+                                           jax.random.PRNGKey(config.seed + 2))
+        if verbose:
+            names = [joint_names[i] for i in new]
+            print(f"--init-from: {len(names)} joints new to the source policy ({', '.join(names)}) fitted to hold "
+                  f"still on {fit['states']:,} states: RMS action error new joints {fit['rms_new_before']:.3f} -> "
+                  f"{fit['rms_new_after']:.3f}, the source's joints {fit['rms_old_before']:.3f} -> "
+                  f"{fit['rms_old_after']:.3f}", flush=True)
+    return learner
 
 
 def _brax_params(learner, devices: int):
@@ -292,6 +249,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     root = ensure_train_paths(config.robot, config.dataset, config.num_train_paths, config.dataset_root,
                               run_dir / "data", log=print if verbose else None)
     env, test_env = make_env(config, "train", root), make_env(config, "test", root)
+    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.env.dt).joint_names
     program = _program(config, env)
     core = program.core
     steps_per_epoch = program.iterations * core.steps_per_iteration
@@ -312,7 +270,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     if checkpoint is None:
         learner, start_step, wall, evals = program.init(config.seed), 0, 0.0, {}
         if config.init_from is not None:
-            learner = warm_start(learner, config.init_from, program.devices, env_observation_layout(env))
+            learner = _warm_start(config, program, learner, env, joint_names, verbose)
         truncate_progress(run_dir / "progress.csv", -1)
     else:
         if int(checkpoint["devices"]) != program.devices:
@@ -364,7 +322,6 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     if verbose:
         print("evaluation after training:  ", _fmt(report["after"]), flush=True)
         print("  sampled actions:          ", _fmt(report["after_sampled"]), flush=True)
-    joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.env.dt).joint_names
     write_results(run_dir, core.make_policy, params, test_env, config, joint_names, report)
     return core.make_policy, params, report
 

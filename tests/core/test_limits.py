@@ -80,6 +80,21 @@ def test_action_mapping_is_eq5_and_clips():
     np.testing.assert_allclose(L.action_to_acceleration(jnp.array([7.0, -9.0]), a_min, a_max), [4.0, 1.0])
 
 
+def test_acceleration_to_action_inverts_the_mapping():
+    """Random ranges: action -> acceleration -> action is the identity; accelerations outside the
+    range give the border's action; a range that is a point gives 0."""
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    a_min = jax.random.uniform(k1, (1000,), minval=-10.0, maxval=5.0)
+    a_max = a_min + jax.random.uniform(k2, (1000,), minval=1e-3, maxval=10.0)
+    action = jax.random.uniform(k3, (1000,), minval=-1.0, maxval=1.0)
+    back = L.acceleration_to_action(L.action_to_acceleration(action, a_min, a_max), a_min, a_max)
+    np.testing.assert_allclose(back, action, atol=2e-3)
+    np.testing.assert_array_equal(L.acceleration_to_action(a_max + 1.0, a_min, a_max), 1.0)
+    np.testing.assert_array_equal(L.acceleration_to_action(a_min - 1.0, a_min, a_max), -1.0)
+    np.testing.assert_array_equal(L.acceleration_to_action(jnp.array([3.0, -2.0]), jnp.array([1.0, 1.0]),
+                                                           jnp.array([1.0, 1.0])), 0.0)
+
+
 def test_materialized_output_is_bit_identical():
     """The fusion barrier on the safe range's outputs changes no value (sign of zero, inf,
     NaN, subnormal included), jitted and vmapped."""

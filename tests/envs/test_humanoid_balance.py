@@ -117,6 +117,48 @@ def test_observation_sizes_match_reference(robot, legs_robot, rollout):
         assert sum(b["size"] for b in layout) == size and other.task_name == "balance"
 
 
+def _stand(robot, q, seconds=2.0) -> float:
+    """Largest pelvis tilt [rad] of ``robot`` standing with its servos holding ``q`` (C MuJoCo)."""
+    import mujoco
+
+    model, data = robot.mj_model, mujoco.MjData(robot.mj_model)
+    data.qpos[:] = np.asarray(robot.qpos(q))
+    data.ctrl[:] = np.asarray(robot.ctrl(q, np.zeros_like(q)))
+    base, tilt = model.body("base").id, 0.0
+    for _ in range(int(round(seconds / model.opt.timestep))):
+        mujoco.mj_step(model, data)
+        tilt = max(tilt, float(np.arccos(np.clip(data.xmat[base].reshape(3, 3)[2, 2], -1.0, 1.0))))
+    return tilt
+
+
+def test_controlled_legs_start_inside_their_limits_standing_on_flat_soles(legs_robot):
+    """ARMAR-4's knees have q0 = 0, 0.035 rad below their lower limit: joints outside the path
+    start inside their limits (the safe action space needs that), the knees at their limit and the
+    ankles' pitch turned back by as much, so that the soles stay flat and the robot stands still;
+    the knees moved alone tilt the soles and the robot tips over."""
+    import mujoco
+
+    env = make(legs_robot, "controlled")
+    legs = np.flatnonzero(~np.asarray(legs_robot.path_mask))
+    lo, hi = np.asarray(env.limits.pos_min)[legs], np.asarray(env.limits.pos_max)[legs]
+    q0, home = np.asarray(legs_robot.q0), np.asarray(env.home)
+    assert (q0[legs] < lo).any()  # the case this is about
+    assert ((home[legs] >= lo) & (home[legs] <= hi)).all()
+    np.testing.assert_array_equal(home, H.standing_home(legs_robot))
+    model, data = legs_robot.mj_model, mujoco.MjData(legs_robot.mj_model)
+
+    def soles(q):
+        data.qpos[:] = np.asarray(legs_robot.qpos(q))
+        mujoco.mj_kinematics(model, data)
+        return np.stack([data.xmat[model.body(f"leg_ank2_r{i}").id] for i in (0, 1)])
+
+    np.testing.assert_allclose(soles(home), soles(q0), atol=1e-6)
+    knees_only = np.clip(q0, np.asarray(env.limits.pos_min), np.asarray(env.limits.pos_max))
+    assert np.abs(soles(knees_only) - soles(q0)).max() > 0.03
+    assert _stand(legs_robot, home) < 0.01
+    assert _stand(legs_robot, knees_only) > 0.3
+
+
 def test_bad_options_are_rejected(robot):
     with pytest.raises(ValueError, match="legs must be one of"):
         make(robot, legs="hopping")

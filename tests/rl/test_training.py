@@ -1,6 +1,7 @@
 """train.py / training.py on tiny runs: outputs, determinism, resume, two host devices."""
 
 import csv
+import dataclasses
 import json
 import os
 import pickle
@@ -108,57 +109,127 @@ def test_init_from_starts_where_the_source_run_ended(tiny_run, tmp_path):
     assert TrainConfig.from_json((tmp_path / "warm" / "config.json").read_text()).init_from == str(out)
 
 
+def _first_kernel(net):
+    return net["params"]["MLP_0"]["hidden_0"]["kernel"] if "MLP_0" in net["params"] else net["params"]["hidden_0"]["kernel"]
+
+
+def _trimmed_source(out, where, cut_inputs, manifest, cut_action=None):
+    """A run directory ``where`` holding the tiny run ``out``'s parameters without the observation
+    entries ``cut_inputs`` (and the action ``cut_action``), with the export ``manifest``."""
+    norm, policy, value = jax.tree.map(np.asarray, pickle.loads((out / "params.pkl").read_bytes()))
+
+    def trim(x, axis=0):
+        return np.delete(np.asarray(x), cut_inputs, axis=axis)
+
+    norm = norm.replace(mean=trim(norm.mean), std=trim(norm.std), summed_variance=trim(norm.summed_variance))
+    for net in (policy, value):
+        first = net["params"]["MLP_0"] if "MLP_0" in net["params"] else net["params"]
+        first["hidden_0"]["kernel"] = trim(first["hidden_0"]["kernel"])
+    if cut_action is not None:
+        head = policy["params"]["Dense_0"]
+        head["kernel"], head["bias"] = np.delete(head["kernel"], cut_action, 1), np.delete(head["bias"], cut_action)
+        std = policy["params"]["std_logparam"]
+        std["log_value"] = np.delete(std["log_value"], cut_action)
+    (where / "export").mkdir(parents=True)
+    (where / "params.pkl").write_bytes(pickle.dumps((norm, policy, value)))
+    (where / "export" / "manifest.json").write_text(json.dumps(manifest))
+    return where
+
+
 def test_init_from_a_run_with_fewer_observations_adds_them_with_zero_weights(tiny_run, tmp_path):
-    """A source whose observation layout is a leading part of this run's (here: the tiny run
-    without its last block, the 8 knot distances; in use: a plain tracking run before the balance
-    task's pelvis blocks): its parameters come in unchanged, the added inputs with zero weights in
-    both networks' first layers and a unit normaliser. Another layout is still refused."""
+    """A source that lacks some of this run's observation blocks (here: the tiny run without its
+    last block, the 8 knot distances; in use: a plain tracking run before the balance task's pelvis
+    blocks): its parameters come in unchanged, the added inputs with zero weights in both
+    networks' first layers and a unit normaliser. A run that lacks one of the source's blocks is
+    refused."""
     from mjx_pathtrack.rl import training
+    from mjx_pathtrack.rl import warm_start as warm
     from mjx_pathtrack.rl.checkpoint import RunDirError
 
     out, config, _, _ = tiny_run
-    layout = json.loads((out / "export" / "manifest.json").read_text())["observation_layout"]
+    manifest = json.loads((out / "export" / "manifest.json").read_text())
+    layout = manifest["observation_layout"]
     block = layout[-1]
     cut = np.arange(block["start"], block["start"] + block["size"])  # 86..93; the value net's 3 extra after
-    full = pickle.loads((out / "params.pkl").read_bytes())
-    first_kernel = lambda net: net["params"]["MLP_0"]["hidden_0"]["kernel"] if "MLP_0" in net["params"] \
-        else net["params"]["hidden_0"]["kernel"]  # noqa: E731
-    norm, policy, value = full
-
-    def trim(x):
-        return np.delete(np.asarray(x), cut, axis=0)
-
-    small_norm = norm.replace(mean=trim(norm.mean), std=trim(norm.std), summed_variance=trim(norm.summed_variance))
-    small = jax.tree.map(np.asarray, (small_norm, policy, value))
-    for net in small[1:]:
-        kernel = first_kernel(net)
-        if "MLP_0" in net["params"]:
-            net["params"]["MLP_0"]["hidden_0"]["kernel"] = trim(kernel)
-        else:
-            net["params"]["hidden_0"]["kernel"] = trim(kernel)
-    source = tmp_path / "fewer"
-    (source / "export").mkdir(parents=True)
-    (source / "params.pkl").write_bytes(pickle.dumps(small))
-    (source / "export" / "manifest.json").write_text(json.dumps({"observation_layout": layout[:-1]}))
+    source = _trimmed_source(out, tmp_path / "fewer", cut, {**manifest, "observation_layout": layout[:-1]})
+    norm, policy, value = pickle.loads((out / "params.pkl").read_bytes())
     env = make_env(config, "train")
     learner = training._program(config, env).init(config.seed)
-    warm = training.warm_start(learner, source, 1, layout)
-    got_norm = warm.normalizer_params
+    target = warm.PolicyLayout.of_env(env, manifest["joint_names"])
+    warm_learner, new = warm.warm_start(learner, source, 1, target)
+    assert len(new) == 0  # the same joints
+    got_norm = warm_learner.normalizer_params
     count = float(int(norm.count))
     keep = np.setdiff1d(np.arange(len(np.asarray(norm.mean))), cut)
     np.testing.assert_array_equal(np.asarray(got_norm.mean)[keep], np.asarray(norm.mean)[keep])
     np.testing.assert_array_equal(np.asarray(got_norm.mean)[cut], 0.0)
     np.testing.assert_array_equal(np.asarray(got_norm.std)[cut], 1.0)
     np.testing.assert_allclose(np.asarray(got_norm.summed_variance)[cut], count, rtol=1e-6)
-    for got, was in ((warm.params.policy, policy), (warm.params.value, value)):
-        k_got, k_was = np.asarray(first_kernel(got)), np.asarray(first_kernel(was))
+    for got, was in ((warm_learner.params.policy, policy), (warm_learner.params.value, value)):
+        k_got, k_was = np.asarray(_first_kernel(got)), np.asarray(_first_kernel(was))
         np.testing.assert_array_equal(k_got[cut], 0.0)
-        np.testing.assert_array_equal(k_got[np.setdiff1d(np.arange(len(k_got)), cut)], k_was[np.setdiff1d(np.arange(len(k_was)), cut)])
+        np.testing.assert_array_equal(k_got[np.setdiff1d(np.arange(len(k_got)), cut)],
+                                      k_was[np.setdiff1d(np.arange(len(k_was)), cut)])
     with pytest.raises(RunDirError, match="observation normaliser parameter .mean has shape"):  # without the layouts
-        training.warm_start(learner, source, 1, None)
-    other = [dict(b, name="x" if i == 0 else b["name"]) for i, b in enumerate(layout)]
-    with pytest.raises(RunDirError, match="shape"):  # a layout the source's is not a leading part of
-        training.warm_start(learner, source, 1, other)
+        warm.warm_start(learner, source, 1, None)
+    renamed = dataclasses.replace(target, observation=tuple(dict(b, name="x" if i == 0 else b["name"])
+                                                            for i, b in enumerate(target.observation)))
+    with pytest.raises(RunDirError, match=r"source run observes \['position'\], this run does not"):
+        warm.warm_start(learner, source, 1, renamed)
+
+
+def test_init_from_a_run_with_fewer_joints_fits_the_new_one_to_hold_still(tiny_run, tmp_path):
+    """A source that drove one joint fewer (as the fixed-legs ARMAR-4 policy for controlled legs):
+    the source's joints act as before whatever the new joint's inputs, the new joint's mean action
+    starts at 0 and the fit then moves it towards braking and holding still (its hold action)
+    while the source's joints keep their actions."""
+    from mjx_pathtrack.deploy.export import observation_layout
+    from mjx_pathtrack.rl import training
+    from mjx_pathtrack.rl import warm_start as warm
+
+    out, config, _, _ = tiny_run
+    manifest = json.loads((out / "export" / "manifest.json").read_text())
+    names, n, n_next = manifest["joint_names"], len(manifest["joint_names"]), manifest["n_next"]
+    assert manifest["path_joints"] == list(range(n))
+    drop = n - 1
+    blocks = {b["name"]: b for b in manifest["observation_layout"]}
+    cut = [blocks[k]["start"] + drop for k in ("position", "velocity", "acceleration")]
+    cut += [blocks["knots"]["start"] + k * n + drop for k in range(n_next + 1)]
+    small = {**manifest, "joint_names": names[:drop], "path_joints": list(range(drop)),
+             "observation_layout": observation_layout(drop, drop, n_next)}
+    source = _trimmed_source(out, tmp_path / "fewer_joints", cut, small, cut_action=drop)
+    env = make_env(config, "train")
+    program = training._program(config, env)
+    learner = program.init(config.seed)
+    warm_learner, new = warm.warm_start(learner, source, 1, warm.PolicyLayout.of_env(env, names))
+    assert new.tolist() == [drop]
+    full = pickle.loads((out / "params.pkl").read_bytes())
+    np.testing.assert_array_equal(np.asarray(warm_learner.params.policy["params"]["std_logparam"]["log_value"])[drop],
+                                  np.asarray(learner.params.policy["params"]["std_logparam"]["log_value"])[drop])
+
+    def act(learner_or_params, obs):
+        params = (learner_or_params.normalizer_params, learner_or_params.params.policy) \
+            if hasattr(learner_or_params, "params") else learner_or_params
+        return np.asarray(program.core.make_policy(params, deterministic=True)(obs, None)[0])
+
+    obs = jax.random.uniform(jax.random.PRNGKey(3), (64, env.observation_size), minval=-1.0, maxval=1.0)
+    moved = obs.at[:, np.asarray(cut)].set(-obs[:, np.asarray(cut)])
+    warm_act = act(warm_learner, obs)
+    np.testing.assert_array_equal(warm_act[:, drop], 0.0)  # the new joint: mean 0, the middle of its range
+    np.testing.assert_array_equal(act(warm_learner, moved)[:, :drop], warm_act[:, :drop])  # blind to its inputs
+    # the source's joints act as the source did where the inputs it knew are the same (the
+    # tiny run's own parameters see the dropped joint's inputs, so compare with those zeroed)
+    src = jax.tree.map(np.asarray, full)
+    src_policy = src[1]
+    _first_kernel(src_policy)[np.asarray(cut)] = 0.0
+    np.testing.assert_allclose(warm_act[:, :drop], act((warm_learner.normalizer_params, src_policy), obs)[:, :drop],
+                               atol=1e-6)
+
+    fitted, report = warm.fit_new_joints(program.core.make_policy, warm_learner, env, new, 1, jax.random.PRNGKey(4),
+                                         n_envs=16, n_steps=10, iterations=300)
+    assert report["states"] > 100
+    assert report["rms_new_after"] < 0.2 * report["rms_new_before"], report
+    assert report["rms_old_before"] < 1e-6 and report["rms_old_after"] < 0.05, report
 
 
 def test_init_from_refuses_other_networks_and_missing_runs(tiny_run, tmp_path):

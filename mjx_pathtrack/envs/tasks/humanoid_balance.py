@@ -106,6 +106,33 @@ class HeldJointsExecutor:
         return data, q[:, self.active], sensors
 
 
+def standing_home(robot) -> np.ndarray:
+    """Joint positions ``[n]`` [rad] of ``robot`` standing with straight legs inside the limits
+    and the soles flat: ``q0`` clipped into the limits, and every ankle pitch (``ank1``) turned
+    back by its knee's change. ARMAR-4's knees have ``q0 = 0``, 0.035 rad below their lower limit
+    (the margin inside the URDF's [0, 1.635]): a policy that controls them must start inside
+    (the safe action space moves them in at once otherwise), and a knee bent alone tilts the sole
+    by the same angle, which tips the robot over within 2 s standing still. The knee and ankle
+    pitch axes are (anti)parallel, so the ankle restores the sole's orientation exactly."""
+    import mujoco
+
+    lim = robot.limits
+    q0 = np.asarray(robot.q0, np.float64)
+    home = np.clip(q0, np.asarray(lim.pos_min), np.asarray(lim.pos_max))
+    model = robot.mj_model
+    data = mujoco.MjData(model)
+    data.qpos[:] = robot.qpos0
+    mujoco.mj_kinematics(model, data)
+    names = list(robot.joint_names)
+    for i, name in enumerate(names):
+        ankle = name.replace("knee", "ank1")
+        if "knee" in name and ankle in names:
+            j = names.index(ankle)
+            turn = float(np.dot(data.xaxis[model.joint(name).id], data.xaxis[model.joint(ankle).id]))
+            home[j] = np.clip(home[j] - turn * (home[i] - q0[i]), lim.pos_min[j], lim.pos_max[j])
+    return home.astype(np.float32)
+
+
 @dataclasses.dataclass(frozen=True)
 class BalanceOptions:
     """Task settings: ``legs`` ("fixed": 18 actions, "controlled": 30); ``base_sensor``: add the
@@ -156,8 +183,9 @@ class HumanoidBalanceEnv(PathTrackingEnv):
         self.options = options
         self.active = active
         self.joint_names = tuple(robot.joint_names[i] for i in active)
-        super().__init__(limits, paths, max_dis_between_knots, config, path_joints=path_joints,
-                         home=np.asarray(robot.q0)[active], executor=executor)
+        home = standing_home(robot)[active]  # joints outside the path (controlled legs) start there
+        super().__init__(limits, paths, max_dis_between_knots, config, path_joints=path_joints, home=home,
+                         executor=executor)
         data0 = robot.mj_data()
         self._base_body = int(robot.mj_model.body("base").id)
         if robot.mj_model.jnt_type[0] != 0 or robot.mj_model.jnt_bodyid[0] != self._base_body:
