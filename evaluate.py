@@ -2,11 +2,13 @@
 
     python evaluate.py runs/iiwa_random                 # run dir: config.json + params.pkl
     python evaluate.py runs/iiwa_random/export          # exported policy (manifest.json)
+    python evaluate.py RUN --checkpoint latest          # a run still training: its newest checkpoint
     python evaluate.py RUN --paths my_paths.csv         # user paths (datasets import format)
     python evaluate.py RUN --episodes 50 --seed 1 --full-paths --out eval/
     python evaluate.py runs/armar4_target_point --floating-base --terminate-deviation inf  # ARMAR-4 on the floor: falls
 
-Writes metrics.json, episodes.csv and PNG plots of one episode to --out (default RUN/eval).
+Writes metrics.json, episodes.csv and PNG plots of one episode to --out (default RUN/eval, with
+--checkpoint RUN/eval_latest or RUN/eval_STEP).
 """
 
 from __future__ import annotations
@@ -23,6 +25,9 @@ mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", metavar="RUN_DIR_OR_EXPORT")
+    parser.add_argument("--checkpoint", default=None, metavar="latest|STEP",
+                        help="a run directory's checkpoint (a run still training or cut off) instead of its final "
+                             "params.pkl; default output SOURCE/eval_STEP")
     parser.add_argument("--paths", default=None, help="user path file (.npz/.json/.csv) instead of the dataset split")
     parser.add_argument("--split", default="test", choices=("train", "test"))
     parser.add_argument("--episodes", type=int, default=None, help="default: one per path")
@@ -84,7 +89,7 @@ def main(argv=None) -> int:
     from mjx_pathtrack.paths.datasets import DatasetError
 
     try:
-        source = R.load_policy_source(args.source, deterministic=not args.stochastic)
+        source = R.load_policy_source(args.source, deterministic=not args.stochastic, checkpoint=args.checkpoint)
         if args.terminate_deviation is not None and not args.terminate_deviation > 0:
             raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
         if args.end_knot_tolerance is not None and not 0 < args.end_knot_tolerance < float("inf"):
@@ -109,7 +114,7 @@ def main(argv=None) -> int:
     episode = min(max(args.plot_episode, 0), len(first.s_start) - 1)
     ball_task = source.config.task == "ball_on_plate"
     whole = args.full_paths or ball_task  # the ball task always runs whole paths
-    meta = {"source": str(source.path), "source_kind": source.kind, "robot": source.config.robot, "paths": label,
+    meta = {"source": str(source.path), "source_kind": source.kind, "checkpoint": args.checkpoint, "robot": source.config.robot, "paths": label,
             "seed": args.seed, "full_paths": whole,
             "actions": "sampled" if args.stochastic else "deterministic",
             "terminate_deviation": source.config.env.terminate_deviation, "end_tolerance": source.config.env.end_tolerance,
@@ -121,7 +126,8 @@ def main(argv=None) -> int:
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if whole else f'sub-paths, seed {args.seed}'}"
              f"{physics}{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))
-    out = Path(args.out) if args.out else Path(args.source) / "eval"
+    default = "eval" if args.checkpoint is None else f"eval_{args.checkpoint}"
+    out = Path(args.out) if args.out else Path(args.source) / default
     files = R.write_outputs(out, summary, table, meta, env, first, robot, episode)
     print("\nwrote " + ", ".join(str(f) for f in files))
     return 0 if summary["limit_audit"]["ok"] else 1

@@ -54,16 +54,20 @@ class PolicySource:
     path: FsPath
 
 
-def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
+def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | None = None) -> PolicySource:
     """Load a run directory (``config.json`` + ``params.pkl``) or an export directory
     (``manifest.json`` + ``policy.jaxexport``); :class:`EvaluationError` if unusable.
     ``deterministic=False``: the policy samples its actions from the trained Gaussian, with the
-    key of each step, as during training (run directories only: an export holds the mean)."""
+    key of each step, as during training (run directories only: an export holds the mean).
+    ``checkpoint``: ``"latest"`` or a step: the policy of that checkpoint of a run directory
+    (``checkpoints/``; a run still training or cut off) instead of its final ``params.pkl``."""
     from mjx_pathtrack.deploy import export
 
     root = FsPath(path)
     if not root.is_dir():
         raise EvaluationError(f"no run or export directory at {root}")
+    if checkpoint is not None and (root / export.MANIFEST_FILE).is_file():
+        raise EvaluationError(f"{root} is an export; --checkpoint needs the run directory (its checkpoints/)")
     if (root / export.MANIFEST_FILE).is_file():
         if not deterministic:
             raise EvaluationError(f"{root} is an export, which holds only the deterministic policy; "
@@ -94,14 +98,48 @@ def load_policy_source(path: str, deterministic: bool = True) -> PolicySource:
         config = TrainConfig.from_json(config_file.read_text())
     except (ValueError, TypeError) as e:
         raise EvaluationError(f"corrupt run config {config_file}: {e}") from e
+    if checkpoint is not None:
+        params, params_file = _checkpoint_params(root, checkpoint)
+        return PolicySource(_brax_policy(config, params, params_file, deterministic), config, None, "run", root)
     if not params_file.is_file():
-        raise EvaluationError(f"{root}: params.pkl missing (training not finished? use the export/ directory "
-                              f"or finish the run with train.py --resume)")
+        raise EvaluationError(f"{root}: params.pkl missing (training not finished? evaluate a checkpoint with "
+                              f"--checkpoint latest, or finish the run with train.py --resume)")
     try:
         params = pickle.loads(params_file.read_bytes())
     except Exception as e:  # unpickling errors come in many types
         raise EvaluationError(f"corrupt checkpoint {params_file}: {type(e).__name__}: {e}") from e
     return PolicySource(_brax_policy(config, params, params_file, deterministic), config, None, "run", root)
+
+
+def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
+    """``((normalizer, policy, value), file)`` of checkpoint ``which`` ("latest" or a step) of run ``root``."""
+    from mjx_pathtrack.rl import checkpoint as C
+
+    folder = root / "checkpoints"
+    if which == "latest":
+        found = C.latest_checkpoint(folder)
+        if found is None:
+            raise EvaluationError(f"{root}: no checkpoint in {folder}")
+        path = found[0]
+    else:
+        try:
+            step = int(which)
+        except ValueError:
+            raise EvaluationError(f"--checkpoint must be 'latest' or a step, got {which!r}") from None
+        path = C.checkpoint_path(folder, step)
+        if not path.is_file():
+            steps = sorted(int(f.name[:-len(C.CHECKPOINT_SUFFIX)]) for f in folder.glob(f"*{C.CHECKPOINT_SUFFIX}")
+                           if f.name[:-len(C.CHECKPOINT_SUFFIX)].isdigit()) if folder.is_dir() else []
+            raise EvaluationError(f"{root}: no checkpoint of step {step} (there are: {steps or 'none'})")
+    try:
+        data = C.load_checkpoint(path)
+    except Exception as e:  # unpickling errors come in many types; RunDirError for another format
+        raise EvaluationError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
+    learner = data["learner"]
+    params = (learner.normalizer_params, learner.params.policy, learner.params.value)
+    if int(data.get("devices", 1)) > 1:  # pmapped: every device holds the same parameters
+        params = jax.tree.map(lambda x: np.asarray(x)[0], params)
+    return params, path
 
 
 def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True) -> E.Policy:

@@ -416,6 +416,27 @@ def test_critic_features_show_the_budget_the_path_left_and_braking():
     assert float(env.critic_features(braking)[2]) == 1.0
 
 
+def test_evaluation_loads_a_checkpoint_of_a_run(tiny_run):
+    """``evaluate.py RUN --checkpoint latest|STEP``: a checkpoint's policy (here the last one, whose
+    parameters the finished run wrote to params.pkl: the same actions); bad requests are refused
+    by name."""
+    from mjx_pathtrack.evaluation.report import EvaluationError, load_policy_source
+
+    out, config, _, _ = tiny_run
+    steps = sorted(int(f.name.split(".")[0]) for f in (out / "checkpoints").glob("*.ckpt"))
+    obs = jax.random.uniform(jax.random.PRNGKey(7), (16, 94), minval=-1, maxval=1)
+    final = np.asarray(load_policy_source(str(out)).policy(obs, jax.random.PRNGKey(0)))
+    for which in ("latest", str(steps[-1])):
+        got = np.asarray(load_policy_source(str(out), checkpoint=which).policy(obs, jax.random.PRNGKey(0)))
+        np.testing.assert_array_equal(got, final)
+    with pytest.raises(EvaluationError, match=r"no checkpoint of step 1 \(there are: \["):
+        load_policy_source(str(out), checkpoint="1")
+    with pytest.raises(EvaluationError, match="'latest' or a step"):
+        load_policy_source(str(out), checkpoint="newest")
+    with pytest.raises(EvaluationError, match="is an export; --checkpoint needs the run directory"):
+        load_policy_source(str(out / "export"), checkpoint="latest")
+
+
 def test_a_run_with_a_privileged_critic_exports_the_plain_policy(tmp_path):
     """Trained with the critic features, the run's parameters and its export act on the plain
     94-value observation and agree."""
