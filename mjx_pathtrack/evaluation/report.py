@@ -128,18 +128,13 @@ def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
             raise EvaluationError(f"--checkpoint must be 'latest' or a step, got {which!r}") from None
         path = C.checkpoint_path(folder, step)
         if not path.is_file():
-            steps = sorted(int(f.name[:-len(C.CHECKPOINT_SUFFIX)]) for f in folder.glob(f"*{C.CHECKPOINT_SUFFIX}")
-                           if f.name[:-len(C.CHECKPOINT_SUFFIX)].isdigit()) if folder.is_dir() else []
-            raise EvaluationError(f"{root}: no checkpoint of step {step} (there are: {steps or 'none'})")
+            raise EvaluationError(f"{root}: no checkpoint of step {step} (there are: "
+                                  f"{C.checkpoint_steps(folder) or 'none'})")
     try:
         data = C.load_checkpoint(path)
     except Exception as e:  # unpickling errors come in many types; RunDirError for another format
         raise EvaluationError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
-    learner = data["learner"]
-    params = (learner.normalizer_params, learner.params.policy, learner.params.value)
-    if int(data.get("devices", 1)) > 1:  # pmapped: every device holds the same parameters
-        params = jax.tree.map(lambda x: np.asarray(x)[0], params)
-    return params, path
+    return C.learner_params(data["learner"], int(data.get("devices", 1))), path
 
 
 def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True) -> E.Policy:

@@ -66,17 +66,30 @@ def checkpoint_path(checkpoints: FsPath, step: int) -> FsPath:
     return checkpoints / f"{step:012d}{CHECKPOINT_SUFFIX}"
 
 
+def checkpoint_steps(checkpoints: FsPath) -> list[int]:
+    """The env steps of the checkpoints in folder ``checkpoints``, ascending (none: ``[]``)."""
+    if not checkpoints.is_dir():
+        return []
+    names = (f.name[:-len(CHECKPOINT_SUFFIX)] for f in checkpoints.iterdir() if f.name.endswith(CHECKPOINT_SUFFIX))
+    return sorted(int(n) for n in names if n.isdigit())
+
+
 def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
     """The newest checkpoint file and the env steps it stands for, or None. Files are written
     atomically, so any file found is complete."""
-    if not checkpoints.is_dir():
-        return None
-    found = [(int(f.name[:-len(CHECKPOINT_SUFFIX)]), f) for f in checkpoints.iterdir()
-             if f.name.endswith(CHECKPOINT_SUFFIX) and f.name[:-len(CHECKPOINT_SUFFIX)].isdigit()]
-    if not found:
-        return None
-    step, path = max(found)
-    return path, step
+    steps = checkpoint_steps(checkpoints)
+    return (checkpoint_path(checkpoints, steps[-1]), steps[-1]) if steps else None
+
+
+def learner_params(learner, devices: int):
+    """``(normalizer, policy, value)`` host arrays of a learner (a checkpoint's or a live one;
+    pmapped over ``devices`` > 1: device 0's copy, all devices hold the same)."""
+    import jax
+    import numpy as np
+
+    params = jax.tree.map(np.asarray, jax.device_get((learner.normalizer_params, learner.params.policy,
+                                                      learner.params.value)))
+    return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
 
 
 def save_checkpoint(checkpoints: FsPath, step: int, state: dict) -> FsPath:

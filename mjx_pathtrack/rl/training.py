@@ -37,7 +37,7 @@ from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
 from mjx_pathtrack.paths.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
 from mjx_pathtrack.config.run import TrainConfig, differences, validate_config
-from mjx_pathtrack.rl.checkpoint import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, load_checkpoint, prepare_run_dir, save_checkpoint
+from mjx_pathtrack.rl.checkpoint import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, learner_params, load_checkpoint, prepare_run_dir, save_checkpoint
 
 _jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
 
@@ -198,13 +198,6 @@ def _warm_start(config: TrainConfig, program: _Program, learner, env, joint_name
     return learner
 
 
-def _brax_params(learner, devices: int):
-    """``(normalizer, policy, value)`` host arrays of a learner (device 0's copy)."""
-    params = (learner.normalizer_params, learner.params.policy, learner.params.value)
-    params = _host(params)
-    return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
-
-
 def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True,
           overwrite: bool = False):
     """Train; returns ``(make_inference_fn, params, report)`` where ``report`` holds the
@@ -259,7 +252,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     toppra = _eval_baseline(test_env, eval_key, config.eval.episodes)
 
     def evaluation(learner) -> dict[str, float]:
-        params = _brax_params(learner, program.devices)
+        params = learner_params(learner, program.devices)
         out = {}
         for sampled, prefix in ((False, "eval"), (True, "eval_sampled")):
             for k, v in summarize(evaluator(params, eval_key, sampled), toppra).items():
@@ -315,7 +308,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
         evals["latest"] = latest
         save_checkpoint(checkpoints, step, {"wall_s": progress.wall(), "devices": program.devices,
                                             "learner": _host(learner), "evaluations": evals})
-    params = _brax_params(learner, program.devices)
+    params = learner_params(learner, program.devices)
     report = {"before": _unprefix(evals["before"], "eval"), "after": _unprefix(latest, "eval"),
               "before_sampled": _unprefix(evals["before"], "eval_sampled"),
               "after_sampled": _unprefix(latest, "eval_sampled")}

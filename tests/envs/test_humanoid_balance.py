@@ -144,7 +144,15 @@ def test_controlled_legs_start_inside_their_limits_standing_on_flat_soles(legs_r
     q0, home = np.asarray(legs_robot.q0), np.asarray(env.home)
     assert (q0[legs] < lo).any()  # the case this is about
     assert ((home[legs] >= lo) & (home[legs] <= hi)).all()
-    np.testing.assert_array_equal(home, H.standing_home(legs_robot))
+    # every joint at q0 clipped into its limits (the knees: their lower limit), each ankle pitch
+    # turned by its knee's change (antiparallel axes)
+    names = list(legs_robot.joint_names)
+    expected = np.clip(q0, np.asarray(env.limits.pos_min), np.asarray(env.limits.pos_max)).astype(np.float64)
+    for side in ("r0", "r1"):
+        knee, ankle = names.index(f"leg_knee_joint_{side}"), names.index(f"leg_ank1_joint_{side}")
+        assert expected[knee] == float(env.limits.pos_min[knee]) > q0[knee]
+        expected[ankle] += expected[knee] - q0[knee]
+    np.testing.assert_allclose(home, expected, atol=1e-6)
     model, data = legs_robot.mj_model, mujoco.MjData(legs_robot.mj_model)
 
     def soles(q):
