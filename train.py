@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     from mjx_pathtrack.paths.datasets import DatasetError
-    from mjx_pathtrack.rl.checkpoint import RunDirError
+    from mjx_pathtrack.config.run_dir import RunDirError
     from mjx_pathtrack.config.run import ConfigError
     from mjx_pathtrack.rl.training import TrainingDiverged, train
 

@@ -113,7 +113,7 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
 
 def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
     """``((normalizer, policy, value), file)`` of checkpoint ``which`` ("latest" or a step) of run ``root``."""
-    from mjx_pathtrack.rl import checkpoint as C
+    from mjx_pathtrack.config import run_dir as C
 
     folder = root / "checkpoints"
     if which == "latest":

@@ -1,7 +1,7 @@
 """PPO training of the path-tracking policy: environment wiring, the training loop with its
 evaluations, progress and logs, resume, and the run's results (parameters, export, report).
 ``train.py`` at the repository root is the command-line front end; the configuration lives in
-:mod:`mjx_pathtrack.config.run`, run directories and checkpoints in :mod:`mjx_pathtrack.rl.checkpoint`.
+:mod:`mjx_pathtrack.config.run`, run directories and checkpoints in :mod:`mjx_pathtrack.config.run_dir`.
 
 The algorithm is :mod:`mjx_pathtrack.rl.ppo` (Brax's PPO pieces as a pure function of the whole
 learner state): every evaluation interval ends with a checkpoint of that state, so a run killed
@@ -37,7 +37,7 @@ from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
 from mjx_pathtrack.paths.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
 from mjx_pathtrack.config.run import TrainConfig, differences, validate_config
-from mjx_pathtrack.rl.checkpoint import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, learner_params, load_checkpoint, prepare_run_dir, save_checkpoint
+from mjx_pathtrack.config.run_dir import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, learner_params, load_checkpoint, prepare_run_dir, save_checkpoint
 
 _jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
 

@@ -16,7 +16,7 @@ source's on everything it knew:
   position, so a policy blind to a new joint lets it drift (ARMAR-4's legs: the robot falls).
 
 Everything else (network sizes, the value network's privileged inputs) must be equal;
-:class:`~mjx_pathtrack.rl.checkpoint.RunDirError` names the first difference.
+:class:`~mjx_pathtrack.config.run_dir.RunDirError` names the first difference.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack.core import limits as L
-from mjx_pathtrack.rl.checkpoint import RunDirError
+from mjx_pathtrack.config.run_dir import RunDirError
 
 #: observation blocks with one entry per actuated joint (:func:`~mjx_pathtrack.deploy.export.observation_layout`)
 JOINT_BLOCKS = ("position", "velocity", "acceleration")

@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 
 from mjx_pathtrack.deploy.export import load_policy
-from mjx_pathtrack.rl import checkpoint
-from mjx_pathtrack.rl.checkpoint import latest_checkpoint
+from mjx_pathtrack.config import run_dir
+from mjx_pathtrack.config.run_dir import latest_checkpoint
 from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.fileio import json_safe
 from mjx_pathtrack.rl.training import make_env, train
@@ -144,7 +144,7 @@ def test_init_from_a_run_with_fewer_observations_adds_them_with_zero_weights(tin
     refused."""
     from mjx_pathtrack.rl import training
     from mjx_pathtrack.rl import warm_start as warm
-    from mjx_pathtrack.rl.checkpoint import RunDirError
+    from mjx_pathtrack.config.run_dir import RunDirError
 
     out, config, _, _ = tiny_run
     manifest = json.loads((out / "export" / "manifest.json").read_text())
@@ -234,7 +234,7 @@ def test_init_from_a_run_with_fewer_joints_fits_the_new_one_to_hold_still(tiny_r
 
 def test_init_from_refuses_other_networks_and_missing_runs(tiny_run, tmp_path):
     from mjx_pathtrack.config.options import ConfigError
-    from mjx_pathtrack.rl.checkpoint import RunDirError
+    from mjx_pathtrack.config.run_dir import RunDirError
 
     out, config, _, _ = tiny_run
     with pytest.raises(RunDirError, match="policy.*shape .*this run's"):
@@ -532,7 +532,7 @@ def test_resume_after_sigkill_ends_with_the_parameters_of_an_uninterrupted_run(t
 
 
 def test_a_run_directory_holding_a_run_is_refused_and_left_untouched(tiny_run, tmp_path):
-    from mjx_pathtrack.rl.checkpoint import RunDirError
+    from mjx_pathtrack.config.run_dir import RunDirError
 
     out, config, _, _ = tiny_run
     run = tmp_path / "run"
@@ -558,7 +558,7 @@ def test_overwrite_replaces_the_run_and_a_new_directory_is_removed_when_nothing_
     run.mkdir()
     (run / "params.pkl").write_bytes(b"old")
     (run / "notes.txt").write_text("mine")
-    checkpoint.clear_run_dir(run)
+    run_dir.clear_run_dir(run)
     assert not (run / "params.pkl").exists() and (run / "notes.txt").read_text() == "mine"  # only our files
 
     def broken(*args, **kwargs):
@@ -594,7 +594,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     with pytest.raises(training.TrainingDiverged, match="diverged between steps .*last good checkpoint is .*ckpt"):
         train(TrainConfig().replace(**EXACT), run, verbose=False)
     path, step = latest_checkpoint(run / "checkpoints")
-    state = checkpoint.load_checkpoint(path)
+    state = run_dir.load_checkpoint(path)
     assert state["step"] == step and all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state["learner"].params))
     assert not (run / "params.pkl").exists() and not (run / "export").exists()
 
