@@ -133,9 +133,10 @@ def _stand(robot, q, seconds=2.0) -> float:
 
 def test_controlled_legs_start_inside_their_limits_standing_on_flat_soles(legs_robot):
     """ARMAR-4's knees have q0 = 0, 0.035 rad below their lower limit: joints outside the path
-    start inside their limits (the safe action space needs that), the knees at their limit and the
-    ankles' pitch turned back by as much, so that the soles stay flat and the robot stands still;
-    the knees moved alone tilt the soles and the robot tips over."""
+    start HOME_MARGIN inside their limits (the safe action space needs them inside, and a hold
+    still away from the one-sided range at a limit), the knees bent by as much and the ankles'
+    pitch turned back by as much, so that the soles stay flat and the robot stands still; the
+    knees moved alone tilt the soles and the robot tips over."""
     import mujoco
 
     env = make(legs_robot, "controlled")
@@ -143,16 +144,18 @@ def test_controlled_legs_start_inside_their_limits_standing_on_flat_soles(legs_r
     lo, hi = np.asarray(env.limits.pos_min)[legs], np.asarray(env.limits.pos_max)[legs]
     q0, home = np.asarray(legs_robot.q0), np.asarray(env.home)
     assert (q0[legs] < lo).any()  # the case this is about
-    assert ((home[legs] >= lo) & (home[legs] <= hi)).all()
-    # every joint at q0 clipped into its limits (the knees: their lower limit), each ankle pitch
-    # turned by its knee's change (antiparallel axes)
+    margin = np.minimum(H.HOME_MARGIN, (hi - lo) / 2)
+    assert ((home[legs] >= lo + margin - 1e-6) & (home[legs] <= hi - margin + 1e-6)).all()
+    # the knees 0.1 rad above their lower limit, each ankle pitch turned by its knee's change
+    # (antiparallel axes), every other leg joint at q0 (0, the middle of the ankle roll's
+    # +-0.025 rad)
     names = list(legs_robot.joint_names)
-    expected = np.clip(q0, np.asarray(env.limits.pos_min), np.asarray(env.limits.pos_max)).astype(np.float64)
+    expected = np.asarray(q0, np.float64).copy()
     for side in ("r0", "r1"):
         knee, ankle = names.index(f"leg_knee_joint_{side}"), names.index(f"leg_ank1_joint_{side}")
-        assert expected[knee] == float(env.limits.pos_min[knee]) > q0[knee]
+        expected[knee] = float(env.limits.pos_min[knee]) + 0.1
         expected[ankle] += expected[knee] - q0[knee]
-    np.testing.assert_allclose(home, expected, atol=1e-6)
+    np.testing.assert_allclose(home[legs], expected[legs], atol=1e-6)
     model, data = legs_robot.mj_model, mujoco.MjData(legs_robot.mj_model)
 
     def soles(q):

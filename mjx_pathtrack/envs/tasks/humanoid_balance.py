@@ -106,19 +106,31 @@ class HeldJointsExecutor:
         return data, q[:, self.active], sensors
 
 
+#: how far [rad] :func:`standing_home` keeps a joint inside its position limits (half the range
+#: where the range is narrower)
+HOME_MARGIN = 0.1
+
+
 def standing_home(robot) -> np.ndarray:
-    """Joint positions ``[n]`` [rad] of ``robot`` standing with straight legs inside the limits
-    and the soles flat: ``q0`` clipped into the limits, and every ankle pitch (``ank1``) turned
-    back by its knee's change. ARMAR-4's knees have ``q0 = 0``, 0.035 rad below their lower limit
-    (the margin inside the URDF's [0, 1.635]): a policy that controls them must start inside
-    (the safe action space moves them in at once otherwise), and a knee bent alone tilts the sole
-    by the same angle, which tips the robot over within 2 s standing still. The knee and ankle
-    pitch axes are (anti)parallel, so the ankle restores the sole's orientation exactly."""
+    """Joint positions ``[n]`` [rad] of ``robot`` standing with nearly straight legs and the soles
+    flat: ``q0`` clipped into the limits narrowed by ``HOME_MARGIN`` on each side (by half the
+    range where that is narrower), and every ankle pitch (``ank1``) turned back by its knee's
+    change. ARMAR-4's knees have ``q0 = 0``, 0.035 rad below their lower limit (the margin inside
+    the URDF's [0, 1.635]): a policy that controls them must start inside (the safe action space
+    moves them in at once otherwise), and away from the limit: at the limit the safe range is
+    one-sided ([0, A] at rest), so holding still is the border action -1, which a network only
+    approximates, and the fitted hold of ``--init-from`` let the knees wander and the robot fall
+    in half the episodes; 0.05 rad inside, the whole range [-A, A] is open. The knees therefore
+    start bent by 0.135 rad. A knee bent alone tilts the sole by the same angle, which tips the
+    robot over within 2 s standing still; the knee and ankle pitch axes are (anti)parallel, so the
+    ankle restores the sole's orientation exactly."""
     import mujoco
 
     lim = robot.limits
     q0 = np.asarray(robot.q0, np.float64)
-    home = np.clip(q0, np.asarray(lim.pos_min), np.asarray(lim.pos_max))
+    lo, hi = np.asarray(lim.pos_min, np.float64), np.asarray(lim.pos_max, np.float64)
+    margin = np.minimum(HOME_MARGIN, (hi - lo) / 2)
+    home = np.clip(q0, lo + margin, hi - margin)
     model = robot.mj_model
     data = mujoco.MjData(model)
     data.qpos[:] = robot.qpos0
