@@ -168,6 +168,20 @@ def test_controlled_legs_start_inside_their_limits_standing_on_flat_soles(legs_r
     assert np.abs(soles(knees_only) - soles(q0)).max() > 0.03
     assert _stand(legs_robot, home) < 0.01
     assert _stand(legs_robot, knees_only) > 0.3
+    # at rest at home every leg joint can accelerate both ways, so holding still is an inner
+    # action; at the limit (knees_only) a knee's range is one-sided and holding still is -1
+    from mjx_pathtrack.core import limits as L
+
+    def accel_range(q):
+        z = jnp.zeros_like(env.home)
+        return [np.asarray(x)[legs] for x in L.safe_acceleration_range(env.limits, jnp.asarray(q, jnp.float32), z, z,
+                                                                      env.config.dt)[:2]]
+
+    a_min, a_max = accel_range(home)
+    assert (a_min < 0).all() and (a_max > 0).all(), (a_min, a_max)
+    a_min, a_max = accel_range(knees_only)
+    knees = np.array(["knee" in names[j] for j in legs])
+    assert (a_min[knees] > -1e-3).all() and (a_min[~knees] < -1.0).all() and (a_max > 0).all(), (a_min, a_max)
 
 
 def test_bad_options_are_rejected(robot):
