@@ -144,12 +144,12 @@ def test_controlled_legs_start_inside_their_limits_standing_on_flat_soles(legs_r
     lo, hi = np.asarray(env.limits.pos_min)[legs], np.asarray(env.limits.pos_max)[legs]
     q0, home = np.asarray(legs_robot.q0), np.asarray(env.home)
     assert (q0[legs] < lo).any()  # the case this is about
-    margin = np.minimum(H.HOME_MARGIN, (hi - lo) / 2)
+    names = list(legs_robot.joint_names)
+    margin = np.where(["ank2" in names[j] for j in legs], 0.025, 0.1)  # the ankle roll's range is +-0.025 rad
     assert ((home[legs] >= lo + margin - 1e-6) & (home[legs] <= hi - margin + 1e-6)).all()
     # the knees 0.1 rad above their lower limit, each ankle pitch turned by its knee's change
     # (antiparallel axes), every other leg joint at q0 (0, the middle of the ankle roll's
     # +-0.025 rad)
-    names = list(legs_robot.joint_names)
     expected = np.asarray(q0, np.float64).copy()
     for side in ("r0", "r1"):
         knee, ankle = names.index(f"leg_knee_joint_{side}"), names.index(f"leg_ank1_joint_{side}")

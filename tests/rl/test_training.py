@@ -423,7 +423,7 @@ def test_evaluation_loads_a_checkpoint_of_a_run(tiny_run):
     from mjx_pathtrack.evaluation.report import EvaluationError, load_policy_source
 
     out, config, _, _ = tiny_run
-    steps = sorted(int(f.name.split(".")[0]) for f in (out / "checkpoints").glob("*.ckpt"))
+    steps = run_dir.checkpoint_steps(out / "checkpoints")
     obs = jax.random.uniform(jax.random.PRNGKey(7), (16, 94), minval=-1, maxval=1)
     final = np.asarray(load_policy_source(str(out)).policy(obs, jax.random.PRNGKey(0)))
     for which in ("latest", str(steps[-1])):
