@@ -184,6 +184,7 @@ FLAT_NAMES: dict[str, tuple[str, ...]] = {
     "beta": ("env.reward.max_deviation", "env.reward.mean_deviation"),
     "deviation_threshold": ("env.reward.deviation_threshold",),
     "action_reward": ("env.reward.action",),
+    "jerk_reward": ("env.reward.jerk",),
     **{f.name: (f"ppo.{f.name}",) for f in dataclasses.fields(PPOConfig)},
     **{f.name: (f"network.{f.name}",) for f in dataclasses.fields(NetworkConfig)},
     "num_evals": ("eval.num_evals",),
@@ -226,7 +227,7 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         value = get(name)
         if not (value is not None and np.isfinite(value) and value > 0):
             fail(name, f"must be a finite number > 0, got {value}")
-    for name in ("alpha", "beta", "action_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
+    for name in ("alpha", "beta", "action_reward", "jerk_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
         for path in TrainConfig.paths(name):  # (beta: both deviation weights)
             _check_nonnegative(name, get(path), fail)
     for name, lo, hi in (("discounting", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clipping_epsilon", 0.0, 1.0)):

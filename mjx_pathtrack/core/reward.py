@@ -71,6 +71,17 @@ def action_reward(action: Array, close_to_end: Array, peak: float = 1.0, start: 
     return jnp.where(close_to_end, 1.0, jnp.where(m > start, value, 0.0))
 
 
+def jerk_reward(jerk_ratio: Array) -> Array:
+    """R_jerk (not in the papers; docs/method.md §2.4): ``(1 - mean_j r_j)**2`` over the joints of
+    the per-joint jerk ratios ``r = |a_1 - a_0| / (j_max dt)`` ``[..., n]`` in [0, 1] of one step
+    (the acceleration change the action commands over the step, relative to the largest the jerk
+    limit allows). 1 for a step that keeps every acceleration; 0 when every joint changes its
+    acceleration at the jerk limit, as in bang-bang chatter (accelerations alternating between the
+    ends of the safe range every step), which lengthens the executed path, and so earns R_l,
+    without progress along the reference."""
+    return quadratic_decrease(jnp.mean(jerk_ratio, axis=-1), 1.0)
+
+
 #: normalisation of the ball position on the plate: half plate size minus 0.03 m [m]
 BALL_HALF_RANGE = (0.5 * 0.3393 - 0.03, 0.5 * 0.2715 - 0.03)
 #: offset of the ball reward (docs/method.md §2.4: a length used against normalised coordinates)
@@ -108,7 +119,8 @@ class RewardWeights:
     ``distance``: weight of the path-length reward R_l (the papers' alpha); ``max_deviation``/``mean_deviation``: R_d of d_max / d_mean;
     ``deviation_threshold`` [rad]; ``action``: R_action; ``ball``: R_ball; ``base_pos``,
     ``base_orn``, ``tilt``, ``end_point``: ARMAR-4 balance terms with their scales
-    ``base_pos_max`` [m], ``base_orn_max`` [-], ``tilt_max`` [rad], ``end_point_max`` [m].
+    ``base_pos_max`` [m], ``base_orn_max`` [-], ``tilt_max`` [rad], ``end_point_max`` [m];
+    ``jerk``: R_jerk (not in the papers; 0 in every papers' network).
     """
 
     distance: float = 2.0
@@ -125,16 +137,22 @@ class RewardWeights:
     base_orn_max: float = 0.5
     tilt_max: float = 0.125
     end_point_max: float = 0.4
+    jerk: float = 0.0
 
 
 def tracking_terms(weights: RewardWeights, length: Array, length_state: Array, length_over,
-                   d_max: Array, d_mean: Array, action: Array, close_to_end: Array) -> dict[str, Array]:
-    """Named, weighted path-tracking reward terms (sum them for the step reward)."""
+                   d_max: Array, d_mean: Array, action: Array, close_to_end: Array,
+                   jerk_ratio: Array | None = None) -> dict[str, Array]:
+    """Named, weighted path-tracking reward terms (sum them for the step reward); ``jerk_ratio``
+    ``[..., n]``: the step's per-joint jerk ratios for R_jerk (:func:`jerk_reward`; ``None``: the
+    term is 0)."""
+    jerk = jnp.zeros(()) if jerk_ratio is None else weights.jerk * jerk_reward(jerk_ratio)
     return {
         "distance": weights.distance * distance_reward(length, length_state, length_over),
         "max_deviation": weights.max_deviation * deviation_reward(d_max, weights.deviation_threshold),
         "mean_deviation": weights.mean_deviation * deviation_reward(d_mean, weights.deviation_threshold),
         "action": weights.action * action_reward(action, close_to_end),
+        "jerk": jerk,
     }
 
 

@@ -305,8 +305,10 @@ class PathTrackingEnv(Env):
         window = S.knot_window(path, track.s, cfg.n_next)
         s1 = jnp.minimum(track.s + length, path.length)
         d_max, d_mean = jnp.max(d), jnp.mean(d)
+        # the step's acceleration change relative to the jerk limit, per joint (R_jerk; braking: none)
+        jerk_ratio = jnp.where(track.braking, 0.0, jnp.abs(a_next - track.a) / (lim.jerk * cfg.dt))
         terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
-                                 d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end)
+                                 d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end, jerk_ratio)
         steps = track.steps + 1
         ahead = self.stop_length(p1, v1, a_next) if cfg.end_braking == "predictive" else 0.0
         reached_end = self.end_reached(path, s1 + ahead)
@@ -426,7 +428,7 @@ class PathTrackingEnv(Env):
         return {}, jnp.zeros((), bool), {}
 
     def metric_names(self) -> tuple[str, ...]:
-        terms = ("distance", "max_deviation", "mean_deviation", "action")
+        terms = ("distance", "max_deviation", "mean_deviation", "action", "jerk")
         return ("reward",) + tuple(f"reward/{k}" for k in terms) + ("length", "d_max", "d_mean", "progress", "reached_end",
                                                       "success", "terminated_deviation", "task_failed")
 

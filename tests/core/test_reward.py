@@ -62,6 +62,20 @@ def test_ball_reward_symmetric_and_zero_off_plate():
     assert float(R.ball_reward(jnp.array([0.0, 0.2]))) == 0.0
 
 
+def test_jerk_reward_levels():
+    # (1 - mean ratio)**2: 1 for a step that keeps every acceleration, 0 for a change at the jerk limit on every joint
+    assert float(R.jerk_reward(jnp.zeros(7))) == 1.0
+    assert float(R.jerk_reward(jnp.ones(7))) == 0.0
+    assert float(R.jerk_reward(jnp.array([1.0, 0.0, 0.5, 0.5]))) == pytest.approx(0.25)
+    w = R.RewardWeights(jerk=2.0)
+    terms = R.tracking_terms(w, 0.3, 0.5, 7.4, 0.1, 0.05, jnp.zeros(4), False, jnp.full((4,), 0.5))
+    assert float(terms["jerk"]) == pytest.approx(0.5)
+    # without ratios (or with the papers' weight 0) the term is 0
+    assert float(R.tracking_terms(w, 0.3, 0.5, 7.4, 0.1, 0.05, jnp.zeros(4), False)["jerk"]) == 0.0
+    assert float(R.tracking_terms(R.RewardWeights(), 0.3, 0.5, 7.4, 0.1, 0.05, jnp.zeros(4), False,
+                                  jnp.ones(4))["jerk"]) == 0.0
+
+
 def test_balance_terms_levels():
     w = R.RewardWeights(base_pos=0.2, base_orn=0.2, tilt=2.0, end_point=0.2)
     upright = R.balance_terms(w, jnp.zeros(3), jnp.array([1.0, 0, 0, 0]), jnp.array([0, 0, 1.0]), jnp.float32(0.0))

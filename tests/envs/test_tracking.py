@@ -132,6 +132,34 @@ def test_fresh_resets_draw_new_episodes_and_runs_are_reproducible(env):
     assert not np.allclose(s1[3], s1[0]) and not np.allclose(s1[6], s1[3])
 
 
+def test_jerk_reward_marks_chatter():
+    # R_jerk (weight 1): bang-bang chatter (+1, -1, ...) changes every acceleration at about the
+    # jerk limit and earns almost nothing; a steady action earns nearly the full weight once its
+    # acceleration is reached; the papers' weight 0 leaves the reward unchanged
+    import dataclasses
+
+    from mjx_pathtrack.core import reward as R
+
+    cfg = EnvConfig(reward=dataclasses.replace(R.RewardWeights(), jerk=1.0))
+    env = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(), 0.5, cfg)
+    plain = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(), 0.5, EnvConfig())
+    steps = 8
+
+    def run(env, actions):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, (s.metrics["reward/jerk"], s.reward)
+        return jax.lax.scan(body, env.reset(jax.random.PRNGKey(3)), actions)[1]
+
+    signs = jnp.where(jnp.arange(steps) % 2 == 0, 1.0, -1.0)[:, None] * jnp.ones((steps, 7))
+    chatter, _ = jax.jit(lambda a: run(env, a))(signs)
+    steady, reward = jax.jit(lambda a: run(env, a))(jnp.full((steps, 7), 0.2))
+    _, plain_reward = jax.jit(lambda a: run(plain, a))(jnp.full((steps, 7), 0.2))
+    assert float(jnp.max(chatter[2:])) < 0.1, chatter
+    assert float(jnp.min(steady[-3:])) > 0.9, steady
+    np.testing.assert_allclose(np.asarray(reward - steady), np.asarray(plain_reward), rtol=1e-5, atol=1e-5)
+
+
 def test_normalize_position_wraps_continuous_joints():
     lo = jnp.array([-1.0, -jnp.inf])
     hi = jnp.array([1.0, jnp.inf])
