@@ -90,4 +90,6 @@ def test_train_preset():
     assert (config.env.n_next, config.env.reward.distance, config.env.reward.action, config.env.duration) == (4, 4.0, 0.0, 6.0)
     assert config.ball_on_plate.reward == 0.0 and config.ppo.num_envs == 8
     _, config = train.parse_args(["--task", "ball_on_plate"])
-    assert config.ball_on_plate.reward == 1.0
+    # the preset's weights (docs/results.md "Ball on plate"): R_ball 2, both deviation weights 2, R_jerk 1
+    assert config.ball_on_plate.reward == 2.0 and config.env.reward.jerk == 1.0
+    assert (config.env.reward.max_deviation, config.env.reward.mean_deviation) == (2.0, 2.0)
