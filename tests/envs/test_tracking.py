@@ -1,5 +1,7 @@
 """PathTrackingEnv: shapes, limits along rollouts, progress/deviation, braking, fresh resets."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ import jax.numpy as jnp
 
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.core import limits as L
+from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, normalize_position
 from mjx_pathtrack.envs.wrappers import wrap_for_training
 from path_fixtures import line_path, random_walk_paths
@@ -136,10 +139,6 @@ def test_jerk_reward_marks_chatter():
     # R_jerk (weight 1): bang-bang chatter (+1, -1, ...) changes every acceleration at about the
     # jerk limit and earns almost nothing; a steady action earns nearly the full weight once its
     # acceleration is reached; the papers' weight 0 leaves the reward unchanged
-    import dataclasses
-
-    from mjx_pathtrack.core import reward as R
-
     cfg = EnvConfig(reward=dataclasses.replace(R.RewardWeights(), jerk=1.0))
     env = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(), 0.5, cfg)
     plain = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(), 0.5, EnvConfig())
