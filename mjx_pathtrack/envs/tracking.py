@@ -305,8 +305,10 @@ class PathTrackingEnv(Env):
         window = S.knot_window(path, track.s, cfg.n_next)
         s1 = jnp.minimum(track.s + length, path.length)
         d_max, d_mean = jnp.max(d), jnp.mean(d)
-        # the step's acceleration change relative to the jerk limit, per joint (R_jerk; braking: none)
-        jerk_ratio = jnp.where(track.braking, 0.0, jnp.abs(a_next - track.a) / (lim.jerk * cfg.dt))
+        # the step's acceleration change relative to the jerk limit, per joint (R_jerk; braking: none;
+        # not computed at the papers' weight 0, a static value)
+        jerk_ratio = (None if cfg.reward.jerk == 0 else
+                      jnp.where(track.braking, 0.0, jnp.abs(a_next - track.a) / (lim.jerk * cfg.dt)))
         terms = R.tracking_terms(cfg.reward, length, window.last_s - track.s, cfg.n_next * self.max_dis,
                                  d_max, d_mean, jnp.where(track.braking, 0.0, action), window.close_to_end, jerk_ratio)
         steps = track.steps + 1
