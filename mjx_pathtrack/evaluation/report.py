@@ -298,7 +298,7 @@ def format_report(summary: dict, title: str, robot_name: str) -> str:
                                                                                           g("end_time_s_max")),
              "          {:<28s}{:>9s} {:>9s} {:>9s} {:>9s}".format("deviation", "mean", "mean max", "max", "final")]
     for label, key in (("joint [rad]", "joint_dev"), ("Cartesian position [cm]", "cart_pos_dev_cm"),
-                       ("orientation [deg]", "cart_rot_dev_deg")):
+                       ("orientation [deg]", "cart_rot_dev_deg"), ("contour (off the path) [cm]", "cart_contour_dev_cm")):
         if f"{key}_mean" in summary:
             lines.append("          {:<28s}{:9.4f} {:9.4f} {:9.4f} {:9.4f}".format(
                 label, g(f"{key}_mean"), g(f"{key}_max_mean"), g(f"{key}_max"), g(f"{key}_final")))

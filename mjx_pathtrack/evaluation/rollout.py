@@ -317,7 +317,9 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
     sampled every ``spacing`` rad of arc length against the reference at equal arc length from the
     episode start (unweighted L2 over the path joints); with ``robot`` (a
     :class:`~mjx_pathtrack.robots.registry.Robot`) the Cartesian position [cm] and orientation [deg]
-    deviations of the target points (mean over target points per sample); end reached, success,
+    deviations of the target points (mean over target points per sample) and the Cartesian contour
+    deviation [cm] (:func:`contour_deviation`: distance from the reference's Cartesian curve,
+    whatever the arc position); end reached, success,
     termination reason; limit audit ``max_{pos,vel,acc,jerk}_ratio``.
     """
     pj = np.asarray(env.path_joints)
@@ -344,8 +346,16 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
         ref_full = exe.copy()
         ref_full[..., :] = np.asarray(env.home)
         ref_full[..., pj] = ref
-        pos_dev, rot_dev = _cartesian_deviation(robot, ref_full[mask], exe[mask], fk_chunk)
-        for name, values, scale in (("cart_pos_dev_cm", pos_dev, 100.0), ("cart_rot_dev_deg", rot_dev, 180 / np.pi)):
+        curves, counts = reference_curves(env, ro, spacing)
+        k = int(mask.sum())  # valid samples; FK of the reference there, the executed ones, the curves
+        pos, rot = _fk_chunked(robot, np.concatenate([ref_full[mask], exe[mask], curves.reshape(-1, curves.shape[-1])]),
+                               fk_chunk)
+        pos_dev = np.linalg.norm(pos[:k] - pos[k:2 * k], axis=-1).mean(-1)
+        rot_dev = rotation_angle(rot[:k], rot[k:2 * k]).mean(-1)
+        curve_points = pos[2 * k:].reshape(*curves.shape[:2], *pos.shape[1:])  # [B, W, T, 3]
+        contour = contour_deviation(pos[k:2 * k], np.nonzero(mask)[0], curve_points, counts)
+        for name, values, scale in (("cart_pos_dev_cm", pos_dev, 100.0), ("cart_rot_dev_deg", rot_dev, 180 / np.pi),
+                                    ("cart_contour_dev_cm", contour, 100.0)):
             full = np.zeros(mask.shape)
             full[mask] = values * scale
             out[f"{name}_mean"] = full.sum(1) / mask.sum(1)
@@ -362,24 +372,67 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
     return out
 
 
-def _cartesian_deviation(robot, q_ref: np.ndarray, q_exe: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean over the robot's target points of the position [m] and orientation [rad] deviation
-    between joint configurations ``q_ref``, ``q_exe [K, n]`` (FK in chunks of a fixed size, so
-    that one compile serves every evaluation)."""
+def polyline_distance(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
+    """Distance from each of ``points [M, d]`` to the polyline through ``curve [R, d]`` (its
+    nearest point on any segment; ``R = 1``: the distance to that point). Same units as the
+    inputs; returns ``[M]``."""
+    points, curve = np.asarray(points, np.float64), np.asarray(curve, np.float64)
+    if len(curve) == 1:
+        return np.linalg.norm(points - curve[0], axis=-1)
+    a, ab = curve[:-1], np.diff(curve, axis=0)  # [R-1, d]
+    length2 = np.maximum(np.einsum("rd,rd->r", ab, ab), 1e-30)
+    t = np.clip(np.einsum("mrd,rd->mr", points[:, None] - a[None], ab) / length2, 0.0, 1.0)
+    nearest = a[None] + t[..., None] * ab[None]  # [M, R-1, d]
+    return np.linalg.norm(points[:, None] - nearest, axis=-1).min(axis=1)
+
+
+def reference_curves(env: PathTrackingEnv, ro: Rollout, spacing: float = SAMPLE_SPACING
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Each episode's reference from its start ``s_start`` to its end, sampled every ``spacing``
+    rad of arc length, both ends included, as full joint configurations (the joints off the path
+    at ``env.home``): ``(curves [B, W, n], counts [B])``, episode ``b``'s samples being
+    ``curves[b, :counts[b]]`` (the rest repeat its end)."""
+    pj = np.asarray(env.path_joints)
+    s0 = np.asarray(ro.s_start, np.float64)
+    end = np.maximum(np.asarray(ro.paths.length, np.float64), s0)
+    counts = np.floor((end - s0) / spacing + 1e-9).astype(int) + 2
+    k = np.arange(int(counts.max()))[None]
+    s = np.where(k >= counts[:, None] - 1, end[:, None], np.minimum(s0[:, None] + spacing * k, end[:, None]))
+    ref = np.asarray(reference_points(ro.paths, jnp.asarray(s, jnp.float32)), np.float64)
+    curves = np.broadcast_to(np.asarray(env.home, np.float64), ref.shape[:2] + (len(env.home),)).copy()
+    curves[..., pj] = ref
+    return curves, counts
+
+
+def contour_deviation(points: np.ndarray, episode: np.ndarray, curves: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Contour deviation [m] of executed target points ``points [K, T, 3]`` of episodes
+    ``episode [K]``: each target point's distance from its reference curve (the polyline
+    ``curves[b, :counts[b], t]`` of :func:`reference_curves`' FK, ``[B, W, T, 3]``), mean over the
+    ``T`` target points. Unlike the paper's deviation at equal arc length, it does not count how
+    far along the path the robot is, only how far off the path; the gap between the two is the
+    arc-length drift (the executed path being longer or shorter than the reference)."""
+    out = np.empty(len(points))
+    for b in np.unique(episode):
+        sel = episode == b
+        out[sel] = np.mean([polyline_distance(points[sel, t], curves[b, :counts[b], t])
+                            for t in range(points.shape[1])], axis=0)
+    return out
+
+
+def _fk_chunked(robot, q: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """Target-point positions ``[K, T, 3]`` [m] and rotations ``[K, T, 3, 3]`` of configurations
+    ``q [K, n]`` (float64 out; jitted FK in chunks of a fixed size, so that one compile serves
+    every evaluation)."""
     fk = jax.jit(robot.fk)
+    q = q.astype(np.float32)
     pos, rot = [], []
-    both = np.concatenate([q_ref, q_exe]).astype(np.float32)
-    for i in range(0, len(both), chunk):
-        part = both[i:i + chunk]
+    for i in range(0, len(q), chunk):
+        part = q[i:i + chunk]
         padded = np.concatenate([part, np.repeat(part[-1:], chunk - len(part), 0)])
         x, r = fk(jnp.asarray(padded))
         pos.append(np.asarray(x)[:len(part)])
         rot.append(np.asarray(r)[:len(part)])
-    pos, rot = np.concatenate(pos), np.concatenate(rot)
-    k = len(q_ref)
-    pos_dev = np.linalg.norm(pos[:k] - pos[k:], axis=-1).mean(-1)
-    rot_dev = rotation_angle(rot[:k].astype(np.float64), rot[k:].astype(np.float64)).mean(-1)
-    return pos_dev, rot_dev
+    return np.concatenate(pos).astype(np.float64), np.concatenate(rot).astype(np.float64)
 
 
 def aggregate(table: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -67,6 +67,7 @@ def test_line_followed_exactly_has_zero_deviation(lines):
     assert t["n_samples"][1] > 150  # > 1.5 rad travelled, sampled every 0.01 rad
     assert t["joint_dev_max"][1] < 1e-5
     assert t["cart_pos_dev_cm_max"][1] < 1e-3 and t["cart_rot_dev_deg_max"][1] < 0.1
+    assert t["cart_contour_dev_cm_max"][1] < 1e-3
 
 
 def test_overshoot_after_the_end_gives_the_known_deviations(lines, iiwa):
@@ -93,6 +94,40 @@ def test_overshoot_after_the_end_gives_the_known_deviations(lines, iiwa):
     assert r > 0.3
     assert t["cart_pos_dev_cm_final"][0] == pytest.approx(100 * 2 * r * np.sin(o / 2), rel=2e-3)
     assert t["cart_rot_dev_deg_final"][0] == pytest.approx(np.degrees(o), abs=0.05)
+    # beyond the end the nearest point of the reference curve is its end: the same distance
+    assert t["cart_contour_dev_cm_final"][0] == pytest.approx(t["cart_pos_dev_cm_final"][0], rel=2e-3)
+
+
+def test_polyline_distance_known_answers():
+    """An L-shaped polyline (0,0) -> (1,0) -> (1,1): a point beside a segment, one at the corner's
+    outside, one beyond the end, one on the curve; a one-point curve is that point."""
+    curve = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])
+    points = np.array([[0.5, -0.2], [1.3, -0.4], [1.0, 1.5], [1.0, 0.25]])
+    np.testing.assert_allclose(E.polyline_distance(points, curve), [0.2, 0.5, 0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(E.polyline_distance(points, curve[:1]), np.linalg.norm(points, axis=-1))
+
+
+def test_contour_deviation_leaves_out_the_arc_length_drift(iiwa):
+    """Joint 1 at full speed along the line, joint 7 (the flange's rotation about the axis the tool
+    point lies on) kicked back and forth by random actions: the wiggles lengthen the executed
+    joint-space path, so the equal-arc comparison drifts behind along the line, but the tool point
+    never leaves the reference's curve. The contour deviation stays ~0 while the paper's Cartesian
+    deviation (at equal arc length) grows."""
+    lim = iiwa.limits
+    home = -1.0 + 2.0 * (0.0 - float(lim.pos_min[6])) / float(lim.pos_max[6] - lim.pos_min[6])
+
+    def wiggle(obs, key):  # random kicks on joint 7 about its start, held there by a PD term
+        side = jnp.where(jax.random.bernoulli(key, 0.5, (obs.shape[0],)), 1.0, -1.0)
+        pd = -20.0 * (obs[:, 6] - home) - 2.0 * obs[:, 7 + 6]  # obs: positions, velocities, ... (normalised)
+        return jnp.zeros((obs.shape[0], 7)).at[:, 0].set(1.0).at[:, 6].set(jnp.clip(pd + 0.6 * side, -1.0, 1.0))
+
+    cfg = EnvConfig(start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0, terminate_deviation=None,
+                    duration=1.5)
+    env = PathTrackingEnv(iiwa.limits, S.stack_paths([_line(4.0)] * 2), 0.9, cfg, home=iiwa.q0)
+    t = E.episode_table(env, E.rollout(env, wiggle, jax.random.PRNGKey(3), [0, 1]), iiwa)
+    assert np.all(t["joint_dev_mean"] > 0.02)  # the wiggle does drift
+    assert np.all(t["cart_pos_dev_cm_mean"] > 0.5)
+    assert np.all(t["cart_contour_dev_cm_max"] < 2e-3)  # float32 FK
 
 
 def test_durations_of_the_line_against_the_bang_bang_profile(lines):
