@@ -191,6 +191,7 @@ FLAT_NAMES: dict[str, tuple[str, ...]] = {
     "eval_episodes": ("eval.episodes",),
     "ball_reward": ("ball_on_plate.reward",),
     "ball_physics": ("ball_on_plate.physics",),
+    "cartesian_reward": ("ball_on_plate.cartesian_reward",),
     "legs": ("balance.legs",),
     "balance_reward": ("balance.reward",),
 }
@@ -227,7 +228,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         value = get(name)
         if not (value is not None and np.isfinite(value) and value > 0):
             fail(name, f"must be a finite number > 0, got {value}")
-    for name in ("alpha", "beta", "action_reward", "jerk_reward", "entropy_cost", "end_tolerance", "ball_reward", "balance_reward"):
+    for name in ("alpha", "beta", "action_reward", "jerk_reward", "entropy_cost", "end_tolerance", "ball_reward", "cartesian_reward",
+                 "balance_reward"):
         for path in TrainConfig.paths(name):  # (beta: both deviation weights)
             _check_nonnegative(name, get(path), fail)
     for name, lo, hi in (("discounting", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clipping_epsilon", 0.0, 1.0)):

@@ -82,6 +82,17 @@ def jerk_reward(jerk_ratio: Array) -> Array:
     return quadratic_decrease(jnp.mean(jerk_ratio, axis=-1), 1.0)
 
 
+#: the papers' Cartesian deviation threshold (``spline_cartesian_deviation_max_threshold``) [m]
+CARTESIAN_THRESHOLD = 0.1
+
+
+def cartesian_deviation_reward(deviation: Array, threshold=CARTESIAN_THRESHOLD) -> Array:
+    """R_cart = ``(1 - min(1, d / threshold))**2`` (docs/method.md §2.4; not in the papers' released
+    configs, whose Cartesian terms have weight 0): ``deviation`` [m], any shape, the distance of
+    the executed target point from the reference's at equal arc length."""
+    return quadratic_decrease(deviation, threshold)
+
+
 #: normalisation of the ball position on the plate: half plate size minus 0.03 m [m]
 BALL_HALF_RANGE = (0.5 * 0.3393 - 0.03, 0.5 * 0.2715 - 0.03)
 #: offset of the ball reward (docs/method.md §2.4: a length used against normalised coordinates)

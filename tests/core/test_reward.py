@@ -35,6 +35,13 @@ def test_deviation_reward_reference_values(d, expected):
     assert float(R.deviation_reward(jnp.float32(d))) == pytest.approx(expected, abs=1e-6)
 
 
+@pytest.mark.parametrize("d, expected", [(0.0, 1.0), (0.02, 0.64), (0.05, 0.25), (0.1, 0.0), (0.3, 0.0), (-0.01, 1.0)])
+def test_cartesian_deviation_reward_levels(d, expected):
+    # (1 - min(1, d / 0.1 m))**2, the papers' Cartesian threshold
+    assert R.CARTESIAN_THRESHOLD == 0.1
+    assert float(R.cartesian_deviation_reward(jnp.float32(d))) == pytest.approx(expected, abs=1e-6)
+
+
 def test_weighted_deviation_normalizer_iiwa():
     w = jnp.array([1, 1, 1, 0.9, 0.8, 0.7, 0.6])
     assert float(R.deviation_normalizer(w)) == pytest.approx(1.1492, abs=1e-4)

@@ -93,3 +93,58 @@ def test_train_preset():
     # the preset's weights (docs/results.md "Ball on plate"): R_ball 2, both deviation weights 2, R_jerk 1
     assert config.ball_on_plate.reward == 2.0 and config.env.reward.jerk == 1.0
     assert (config.env.reward.max_deviation, config.env.reward.mean_deviation) == (2.0, 2.0)
+    assert config.ball_on_plate.cartesian_reward == 0.0  # R_cart opt-in
+    _, config = train.parse_args(["--task", "ball_on_plate", "--cartesian-reward", "2.5"])
+    assert config.ball_on_plate.cartesian_reward == 2.5
+    from mjx_pathtrack.config.run import ConfigError, validate_config
+
+    with pytest.raises(ConfigError, match="--cartesian-reward"):
+        validate_config(train.parse_args(["--task", "ball_on_plate", "--cartesian-reward", "-1"])[1])
+
+
+def test_cartesian_reward_is_the_target_points_deviation_at_equal_arc():
+    """R_cart (opt-in): weight * (1 - min(1, |reference point - executed point| / 0.1 m))**2 at every
+    step of a batched, jitted rollout that leaves the path; the same rollout without it differs in
+    the reward by exactly that term and in nothing else."""
+    from mjx_pathtrack.core.reward import CARTESIAN_THRESHOLD
+
+    cfg = BP.env_config(terminate_deviation=None)
+    base = BP.make_env("test", cfg, physics="rolling")
+    weight = 3.0
+    cart = BP.BallOnPlateEnv(base.limits, base.paths, base.max_dis, cfg, base.executor,
+                             BP.BallConfig(cartesian=weight), home=base.home)
+    actions = np.zeros((8, 2, 7), np.float32)
+    actions[:, :, 0] = [1.0, -1.0]  # joint 1 swings the target point off the path, both ways
+
+    def rollout(env):
+        @jax.jit
+        def run(keys, actions):
+            state = jax.vmap(env.reset)(keys, jnp.array([0, 1]))
+
+            def body(s, a):
+                n = jax.vmap(env.step)(s, a)
+                return n, (n.reward, n.metrics["reward/cartesian"], n.pipeline_state.executor.relative, n.obs)
+
+            return jax.lax.scan(body, state, actions)[1]
+
+        return [np.asarray(x) for x in run(jax.random.split(jax.random.PRNGKey(3), 2), jnp.asarray(actions))]
+
+    r0, c0, rel0, obs0 = rollout(base)
+    r1, c1, rel1, obs1 = rollout(cart)
+    assert np.all(c0 == 0.0)
+    np.testing.assert_array_equal(rel0, rel1)
+    np.testing.assert_array_equal(obs0, obs1)
+    dist = np.linalg.norm(rel1, axis=-1)
+    expected = weight * np.square(1.0 - np.clip(dist / CARTESIAN_THRESHOLD, 0.0, 1.0))
+    np.testing.assert_allclose(c1, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(r1 - r0, c1, rtol=1e-5, atol=1e-5)
+    # the swing takes the point centimetres off the path: the term is neither 0 nor its maximum
+    assert dist.max() > 0.02 and np.any((c1 > 0.05) & (c1 < 0.95 * weight))
+
+
+def test_cartesian_reward_bad_settings_are_refused(env):
+    with pytest.raises(ValueError, match="BallConfig.cartesian"):
+        BP.BallConfig(cartesian=-1.0)
+    with pytest.raises(ValueError, match="terminate_on_stop"):
+        BP.BallOnPlateEnv(env.limits, env.paths, env.max_dis, BP.env_config(terminate_on_stop=True), env.executor,
+                          BP.BallConfig(cartesian=1.0), home=env.home)

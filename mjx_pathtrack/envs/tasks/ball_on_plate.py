@@ -13,6 +13,11 @@ iiwa while a free ball rolls on the plate at its flange (MJX physics, ``iiwa_bal
 * reward ``ball * R_ball`` (:func:`mjx_pathtrack.core.reward.ball_reward`). The published code computes
   ``1 - max(x_rel, y_rel)`` without ``abs``, so only displacements towards +x/+y are penalised --
   a bug; we use the absolute displacement ``1 - max(|x_rel|, |y_rel|)``;
+* optional reward ``cartesian * R_cart`` (:func:`mjx_pathtrack.core.reward.cartesian_deviation_reward`,
+  not in the papers: weight 0 there): the executed end point's distance from the reference point
+  at the new arc position, threshold 0.1 m. Balancing tilts the plate about the wrist, which
+  moves the target point 0.126 m from it; the joint-space deviation terms cannot tell a tilt
+  about the target point (which keeps it on the path) from one that moves it;
 * termination when the ball leaves the plate (``|x_rel| >= 1`` or ``|y_rel| >= 1`` or its centre
   below the plate surface): metric ``ball_fell``.
 
@@ -80,11 +85,19 @@ def extra_blocks(sensor: bool) -> tuple[tuple[str, int], ...]:
 @dataclasses.dataclass(frozen=True)
 class BallConfig:
     """Task settings. ``reward``: weight of R_ball (0: off); ``sensor``: ball position in the
-    observation; ``terminate``: end the episode when the ball leaves the plate."""
+    observation; ``terminate``: end the episode when the ball leaves the plate; ``cartesian``:
+    weight of R_cart (module docstring; 0: off, the papers')."""
 
     reward: float = 1.0
     sensor: bool = True
     terminate: bool = True
+    cartesian: float = 0.0
+
+    def __post_init__(self):
+        for name in ("reward", "cartesian"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"BallConfig.{name} must be a finite number >= 0, got {value}")
 
 
 def env_config(duration: float = 6.0, terminate_deviation: float | None = 0.25, **overrides) -> EnvConfig:
@@ -200,6 +213,9 @@ class BallOnPlateEnv(PathTrackingEnv):
                  ball: BallConfig = BallConfig(), path_joints=None, home=None):
         if not isinstance(executor, BallExecutor):
             raise ValueError("BallOnPlateEnv needs a BallExecutor")
+        if ball.cartesian > 0 and config.terminate_on_stop:
+            raise ValueError("BallConfig.cartesian > 0 needs EnvConfig.terminate_on_stop=False (the ball task's): "
+                             "the stop reward's multiplication for the remaining steps would leave R_cart out")
         super().__init__(limits, paths, max_dis_between_knots, config, path_joints, home, executor)
         self.ball_config = ball
         self._half_range = jnp.asarray(R.BALL_HALF_RANGE, jnp.float32)
@@ -212,7 +228,7 @@ class BallOnPlateEnv(PathTrackingEnv):
         return list(extra_blocks(self.ball_config.sensor))
 
     def metric_names(self) -> tuple[str, ...]:
-        return super().metric_names() + ("reward/ball", "ball_fell")
+        return super().metric_names() + ("reward/ball", "reward/cartesian", "ball_fell")
 
     def initial_state(self, rng: Array, index: Array | None = None):
         track = super().initial_state(rng, index)
@@ -231,7 +247,14 @@ class BallOnPlateEnv(PathTrackingEnv):
         q_ref = self.home.at[self.path_joints].set(S.point_at(self.reference(new), new.s))
         q_end = new.executor.q
         pos, _ = self.executor.robot.fk(jnp.stack([q_ref, q_end]))
-        new = new._replace(executor=ex._replace(target=pos[0, 0], relative=pos[0, 0] - pos[1, 0]))
+        relative = pos[0, 0] - pos[1, 0]
+        new = new._replace(executor=ex._replace(target=pos[0, 0], relative=relative))
+        # R_cart (static weight; the constructor ensures that no stop multiplies the step reward)
+        w_cart = self.ball_config.cartesian
+        cart = (jnp.zeros(()) if w_cart == 0 else
+                w_cart * R.cartesian_deviation_reward(jnp.linalg.norm(relative)))
+        reward = reward + cart
+        metrics = {**metrics, "reward": reward, "reward/cartesian": cart}
         # a fall also spoils success when it does not end the episode (trained without the ball)
         metrics = {**metrics, "success": metrics["success"] * (1.0 - metrics["ball_fell"])}
         return new, reward, done, metrics
@@ -305,10 +328,12 @@ class TaskConfig:
     """The task's own training settings (``TrainConfig.ball_on_plate``): ``reward``: weight of
     R_ball; 0: trained without the ball (neither observed, rewarded nor ending the episode);
     ``physics``: :data:`PHYSICS` (default ``"arm"``, the reference; the preset trains with
-    ``"rolling"``, docs/results.md "Ball on plate")."""
+    ``"rolling"``, docs/results.md "Ball on plate"); ``cartesian_reward``: weight of R_cart
+    (:class:`BallConfig` ``cartesian``; 0: the papers')."""
 
     reward: float = 1.0
     physics: str = "arm"
+    cartesian_reward: float = 0.0
 
 
 #: ``train.py --task ball_on_plate``: the papers' ball-net settings (N 4, alpha 4, 6 s, no action
@@ -339,7 +364,8 @@ def make_task_env(config, split: str = "train", root=None, evaluation: bool | No
     with_ball = weight > 0
     env_cfg = dataclasses.replace(config.env_config(), start_range=(0.0, 0.0), min_fraction=1.0, max_fraction=1.0,
                                   brake_at_end=False, terminate_on_stop=False)
-    ball = BallConfig(reward=weight, sensor=with_ball, terminate=with_ball or evaluation)
+    ball = BallConfig(reward=weight, sensor=with_ball, terminate=with_ball or evaluation,
+                      cartesian=float(config.ball_on_plate.cartesian_reward))
     root = config.dataset_root if root is None else root
     return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.env.dt, root=root,
                     physics=config.ball_on_plate.physics)
