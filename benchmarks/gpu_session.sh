@@ -45,6 +45,23 @@ if [ -n "${BALANCE:-}" ]; then
   tar czf "$OUT/balance_runs.tgz" -C "$BOUT" .
   exit
 fi
+# BALL="flags": one ball-on-plate training run (issue 23) with the CPU recipe's reward flags given in
+# BALL (e.g. BALL="--beta 4 --jerk-reward 3 --ball-reward 4") on 2048 environments (NBALL), TSBALL
+# steps, stopped after TBALL seconds; every evaluation writes a checkpoint, so a stopped run still
+# comes back with its last one: $OUT/ball_run.tgz (evaluate it here with evaluate.py --checkpoint).
+if [ -n "${BALL:-}" ]; then
+  NBALL=${NBALL:-2048}; TSBALL=${TSBALL:-60000000}
+  [ "${SMALL:-0}" = 1 ] && { NBALL=64; TSBALL=200000; }
+  echo "=== ball $BALL ($(date +%T), limit ${TBALL:-520}s)"
+  # shellcheck disable=SC2086
+  timeout "${TBALL:-520}" python3 train.py --task ball_on_plate --preset paper $BALL --num-envs "$NBALL" \
+    --batch-size $((NBALL / 4)) --num-minibatches 16 --num-timesteps "$TSBALL" --num-evals "${NEBALL:-13}" \
+    --out /tmp/ball_run --compilation-cache /tmp/jax_cache_ball 2>&1 | grep -v "import warp\|import mujoco_warp" \
+    | tee "$OUT/ball.log"
+  echo "=== stopped $(date +%T)"
+  tar czf "$OUT/ball_run.tgz" --exclude tensorboard -C /tmp ball_run
+  exit
+fi
 # smoke: fail fast if the stack does not import
 python3 -c "import mjx_pathtrack, jax; from mjx_pathtrack import training; print(jax.__version__, jax.devices())" 2>&1 \
   | grep -v warp || exit 2
