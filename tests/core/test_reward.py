@@ -37,8 +37,7 @@ def test_deviation_reward_reference_values(d, expected):
 
 @pytest.mark.parametrize("d, expected", [(0.0, 1.0), (0.02, 0.64), (0.05, 0.25), (0.1, 0.0), (0.3, 0.0), (-0.01, 1.0)])
 def test_cartesian_deviation_reward_levels(d, expected):
-    # (1 - min(1, d / 0.1 m))**2, the papers' Cartesian threshold
-    assert R.CARTESIAN_THRESHOLD == 0.1
+    # (1 - min(1, d / 0.1 m))**2: the levels pin the default threshold to the papers' 0.1 m
     assert float(R.cartesian_deviation_reward(jnp.float32(d))) == pytest.approx(expected, abs=1e-6)
 
 
