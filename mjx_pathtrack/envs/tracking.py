@@ -316,6 +316,7 @@ class PathTrackingEnv(Env):
         reached_end = self.end_reached(path, s1 + ahead)
         braking = track.braking | (reached_end & cfg.brake_at_end)
         new = track._replace(p=p1, v=v1, a=a_next, s=s1, executor=exec_state, steps=steps, braking=braking)
+        new = self.task_update(track, new, sensors)
         task_terms, failed, task_metrics = self.task_step(track, new, sensors)
         terms = {**terms, **task_terms}
         reward = sum(terms.values())
@@ -417,11 +418,21 @@ class PathTrackingEnv(Env):
                           (path.length - track.s) / (self.config.n_next * self.max_dis),
                           track.braking.astype(jnp.float32)])
 
+    def task_update(self, before: TrackState, after: TrackState, sensors: dict[str, Array]) -> TrackState:
+        """Hook for tasks that derive state from the step (e.g. Cartesian points for their observation
+        and reward), called once per step after the executor ran and before :meth:`task_step`:
+        arguments as there; returns ``after`` with the task's parts updated (usually inside
+        ``after.executor``). Must not change the commanded joint state (``p``, ``v``, ``a``) nor ``s``:
+        the limits and the progress are the base step's. Default: ``after`` unchanged."""
+        del before, sensors
+        return after
+
     def task_step(self, before: TrackState, after: TrackState, sensors: dict[str, Array]
                   ) -> tuple[dict[str, Array], Array, dict[str, Array]]:
         """Hook for tasks with sensor feedback (:mod:`mjx_pathtrack.envs.tasks`), called once per step
-        after the executor ran: ``before``/``after`` are the states around the step (``after.executor``
-        is the executor's new state, e.g. ``mjx.Data``), ``sensors`` what the executor returned.
+        after the executor ran and :meth:`task_update`: ``before``/``after`` are the states around the
+        step (``after.executor`` is the executor's new state, e.g. ``mjx.Data``), ``sensors`` what the
+        executor returned.
         Returns ``(terms, failed, metrics)``: named weighted reward terms added to the step reward
         (before the robot-stop multiplication), a bool ``[]`` that ends the episode as a task failure
         (not a success; metric ``task_failed``), extra scalar metrics. A subclass that returns terms

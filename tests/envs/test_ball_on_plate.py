@@ -142,9 +142,30 @@ def test_cartesian_reward_is_the_target_points_deviation_at_equal_arc():
     assert dist.max() > 0.02 and np.any((c1 > 0.05) & (c1 < 0.95 * weight))
 
 
-def test_cartesian_reward_bad_settings_are_refused(env):
-    with pytest.raises(ValueError, match="BallConfig.cartesian"):
-        BP.BallConfig(cartesian=-1.0)
-    with pytest.raises(ValueError, match="terminate_on_stop"):
-        BP.BallOnPlateEnv(env.limits, env.paths, env.max_dis, BP.env_config(terminate_on_stop=True), env.executor,
-                          BP.BallConfig(cartesian=1.0), home=env.home)
+def test_cartesian_reward_bad_settings_are_refused():
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="BallConfig.cartesian"):
+            BP.BallConfig(cartesian=bad)
+
+
+def test_cartesian_reward_is_an_ordinary_term_of_the_stop_reward():
+    """With ``terminate_on_stop`` a robot at rest while braking stops the episode and the step's
+    reward counts for every remaining step: R_cart is multiplied with the other terms, and the
+    ball task's transition takes the online tracker's ``fastest_stop``."""
+    cfg = BP.env_config(terminate_deviation=None, terminate_on_stop=True, brake_at_end=True)
+    base = BP.make_env("test", cfg, physics="rolling")
+    env = BP.BallOnPlateEnv(base.limits, base.paths, base.max_dis, cfg, base.executor,
+                            BP.BallConfig(cartesian=2.0), home=base.home)
+
+    @jax.jit
+    def stop(key):
+        track = env.reset(key, jnp.asarray(0)).pipeline_state._replace(braking=jnp.asarray(True))
+        return env.transition(track, jnp.zeros(7), fastest_stop=True)
+
+    new, reward, done, metrics = stop(jax.random.PRNGKey(0))
+    terms = sum(float(v) for k, v in metrics.items() if k.startswith("reward/"))
+    remaining = int(new.max_steps) + 1 - int(new.steps)
+    assert bool(done) and remaining > 1
+    assert 0.0 < float(metrics["reward/cartesian"]) <= 2.0
+    np.testing.assert_allclose(float(reward), terms * remaining, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["reward"]), float(reward), rtol=1e-6)

@@ -213,9 +213,6 @@ class BallOnPlateEnv(PathTrackingEnv):
                  ball: BallConfig = BallConfig(), path_joints=None, home=None):
         if not isinstance(executor, BallExecutor):
             raise ValueError("BallOnPlateEnv needs a BallExecutor")
-        if ball.cartesian > 0 and config.terminate_on_stop:
-            raise ValueError("BallConfig.cartesian > 0 needs EnvConfig.terminate_on_stop=False (the ball task's): "
-                             "the stop reward's multiplication for the remaining steps would leave R_cart out")
         super().__init__(limits, paths, max_dis_between_knots, config, path_joints, home, executor)
         self.ball_config = ball
         self._half_range = jnp.asarray(R.BALL_HALF_RANGE, jnp.float32)
@@ -240,33 +237,30 @@ class BallOnPlateEnv(PathTrackingEnv):
         rel = ball[:2] / self._half_range
         return jnp.any(jnp.abs(rel) >= 1.0) | (ball[2] < 0.0)
 
-    def transition(self, track, action: Array):
-        new, reward, done, metrics = super().transition(track, action)
-        ex = new.executor
-        # Cartesian reference point at the new arc position and the executed end point
-        q_ref = self.home.at[self.path_joints].set(S.point_at(self.reference(new), new.s))
-        q_end = new.executor.q
-        pos, _ = self.executor.robot.fk(jnp.stack([q_ref, q_end]))
-        relative = pos[0, 0] - pos[1, 0]
-        new = new._replace(executor=ex._replace(target=pos[0, 0], relative=relative))
-        # R_cart (static weight; the constructor ensures that no stop multiplies the step reward)
-        w_cart = self.ball_config.cartesian
-        cart = (jnp.zeros(()) if w_cart == 0 else
-                w_cart * R.cartesian_deviation_reward(jnp.linalg.norm(relative)))
-        reward = reward + cart
-        metrics = {**metrics, "reward": reward, "reward/cartesian": cart}
+    def transition(self, track, action: Array, fastest_stop: Array | bool = False):
+        new, reward, done, metrics = super().transition(track, action, fastest_stop)
         # a fall also spoils success when it does not end the episode (trained without the ball)
         metrics = {**metrics, "success": metrics["success"] * (1.0 - metrics["ball_fell"])}
         return new, reward, done, metrics
 
-    def task_step(self, before, after, sensors):
-        """R_ball and the fall (``ball_fell``; a task failure that ends the episode when
-        ``ball_config.terminate``)."""
+    def task_update(self, before, after, sensors):
+        """The Cartesian reference point at the new arc position and the executed end point's
+        offset from it (``executor.target``/``relative``: observation and R_cart)."""
         del before, sensors
-        ball = after.executor.ball
-        fell = self.off_plate(ball)
-        failed = fell if self.ball_config.terminate else jnp.zeros((), bool)
-        return ({"ball": self.ball_config.reward * R.ball_reward(ball[:2])}, failed,
+        q_ref = self.home.at[self.path_joints].set(S.point_at(self.reference(after), after.s))
+        pos, _ = self.executor.robot.fk(jnp.stack([q_ref, after.executor.q]))
+        return after._replace(executor=after.executor._replace(target=pos[0, 0], relative=pos[0, 0] - pos[1, 0]))
+
+    def task_step(self, before, after, sensors):
+        """R_ball, R_cart (weight 0: a constant 0) and the fall (``ball_fell``; a task failure that
+        ends the episode when ``ball_config.terminate``)."""
+        del before, sensors
+        cfg, ex = self.ball_config, after.executor
+        fell = self.off_plate(ex.ball)
+        failed = fell if cfg.terminate else jnp.zeros((), bool)
+        cart = (jnp.zeros(()) if cfg.cartesian == 0 else
+                cfg.cartesian * R.cartesian_deviation_reward(jnp.linalg.norm(ex.relative)))
+        return ({"ball": cfg.reward * R.ball_reward(ex.ball[:2]), "cartesian": cart}, failed,
                 {"ball_fell": fell.astype(jnp.float32)})
 
     def observe(self, track) -> Array:
