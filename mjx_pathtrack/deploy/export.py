@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import jax
@@ -129,10 +129,33 @@ class ExportedPolicy:
 
     manifest: dict
     _exported: jax.export.Exported
+    _compiled: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def observation_size(self) -> int:
         return int(self.manifest["observation_size"])
+
+    def traced_call(self, obs: jax.Array) -> jax.Array:
+        """The policy inside a larger jitted program (an evaluation rollout): ``obs [B,
+        obs_size]`` float32 -> actions ``[B, n]`` in [-1, 1], computed by the export in a program
+        of its own (a host callback), exactly as :meth:`__call__` computes them.
+
+        Why not the export's own ``call`` inline: the stored export accepts any batch size (a
+        symbolic dimension), and a program that calls it gets the shapes of the *whole* program
+        refined by JAX. With jax 0.9.2 that refinement changed the MJX physics compiled beside
+        the policy (the full-arm ball scene's arm lagged its setpoints by 0.02 rad instead of
+        2e-4 rad and the ball fell in every episode); re-exporting at a concrete batch size still
+        carries the refinement along. Kept apart, the two programs compute what they compute
+        alone."""
+        shape = tuple(obs.shape)
+        if len(shape) != 2 or shape[1] != self.observation_size:
+            raise ExportError(f"observation must have shape [B, {self.observation_size}] for robot "
+                              f"{self.manifest['robot']}, got {shape}")
+        if "jit" not in self._compiled:
+            self._compiled["jit"] = jax.jit(self._exported.call)
+        run = self._compiled["jit"]
+        out = jax.ShapeDtypeStruct((shape[0], int(self.manifest["action_size"])), jnp.float32)
+        return jax.pure_callback(lambda o: np.asarray(run(o), np.float32), out, jnp.asarray(obs, jnp.float32))
 
     def __call__(self, obs) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
