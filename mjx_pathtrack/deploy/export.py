@@ -12,7 +12,8 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import jax
@@ -129,11 +130,15 @@ class ExportedPolicy:
 
     manifest: dict
     _exported: jax.export.Exported
-    _compiled: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def observation_size(self) -> int:
         return int(self.manifest["observation_size"])
+
+    @cached_property
+    def _jitted(self):
+        """The export's call, compiled once per batch size (the host side of :meth:`traced_call`)."""
+        return jax.jit(self._exported.call)
 
     def traced_call(self, obs: jax.Array) -> jax.Array:
         """The policy inside a larger jitted program (an evaluation rollout): ``obs [B,
@@ -151,9 +156,7 @@ class ExportedPolicy:
         if len(shape) != 2 or shape[1] != self.observation_size:
             raise ExportError(f"observation must have shape [B, {self.observation_size}] for robot "
                               f"{self.manifest['robot']}, got {shape}")
-        if "jit" not in self._compiled:
-            self._compiled["jit"] = jax.jit(self._exported.call)
-        run = self._compiled["jit"]
+        run = self._jitted
         out = jax.ShapeDtypeStruct((shape[0], int(self.manifest["action_size"])), jnp.float32)
         return jax.pure_callback(lambda o: np.asarray(run(o), np.float32), out, jnp.asarray(obs, jnp.float32))
 

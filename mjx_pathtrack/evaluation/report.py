@@ -88,7 +88,8 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
         else:
             config = TrainConfig.from_flat({"robot": man["robot"], "dt": float(man["dt"]), "n_next": int(man["n_next"]),
                                             **export.env_settings(man)})
-        return PolicySource(lambda obs, key: exported.traced_call(obs), config, float(man["max_dis_between_knots"]), "export", root)
+        return PolicySource(lambda obs, key: exported.traced_call(obs), config, float(man["max_dis_between_knots"]),
+                            "export", root)
     config_file, params_file = root / "config.json", root / "params.pkl"
     if not config_file.is_file():
         raise EvaluationError(f"{root} is neither a run directory (config.json missing) nor an export "
