@@ -184,7 +184,7 @@ def leaf_type(cls, path: str):
 def add_flags(parser: argparse.ArgumentParser, cls, choices: dict[str, tuple] | None = None,
               skip: tuple[str, ...] = ()) -> None:
     """One ``--flat-name`` flag per flat option of config class ``cls`` (defaults: ``cls()``'s
-    values): booleans ``--x/--no-x``, tuples of ints ``nargs='+'``, optional values accept
+    values): booleans ``--x/--no-x``, tuples ``nargs='+'`` (``'*'`` where empty by default), optional values accept
     ``none``; ``choices``: allowed values per flat name."""
     choices = choices or {}
     defaults = cls().flat()
@@ -196,8 +196,9 @@ def add_flags(parser: argparse.ArgumentParser, cls, choices: dict[str, tuple] | 
         flag = "--" + name.replace("_", "-")
         if isinstance(value, bool):
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
-        elif isinstance(value, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=list(value))
+        elif typing.get_origin(hint) is tuple:  # tuple[int, ...] or tuple[str, ...]
+            parser.add_argument(flag, type=typing.get_args(hint)[0], nargs="*" if not value else "+",
+                                default=list(value))
         elif type(None) in options:  # optional: a number or a path
             kind = float if float in options else str
             parser.add_argument(flag, type=_optional(kind), default=value,

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from mjx_pathtrack.core import reward as R
-from mjx_pathtrack.deploy.networks import NetworkConfig
+from mjx_pathtrack.deploy.networks import NetworkConfig, parse_noise_scale
 from mjx_pathtrack.envs.registry import EXECUTORS, FACTORIES
 from mjx_pathtrack.envs.tasks import ball_on_plate, humanoid_balance
 from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES, EnvConfig
@@ -249,6 +249,13 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         fail("num_train_paths", f"must be >= 0, got {c.num_train_paths}")
     if c.init_from is not None and not (Path(c.init_from) / "params.pkl").is_file():
         fail("init_from", f"{c.init_from}: no params.pkl there (the directory of a finished run)")
+    for entry in c.network.noise_scale:
+        try:
+            parse_noise_scale(entry)
+        except ValueError as e:
+            fail("noise_scale", str(e))
+    if c.network.noise_scale and c.network.final_noise_std is None:
+        fail("noise_scale", "scales the scheduled std; set --final-noise-std (a learned std is not scaled)")
     for name in ("policy_layers", "value_layers"):
         if not get(name) or min(get(name)) < 1:
             fail(name, f"needs at least one layer, each of size >= 1, got {list(get(name))}")

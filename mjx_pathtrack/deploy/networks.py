@@ -9,6 +9,7 @@ import dataclasses
 import functools
 
 import jax
+import numpy as np
 
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 
@@ -28,7 +29,10 @@ class NetworkConfig:
     time budget, the path length left, braking (:meth:`PathTrackingEnv.critic_features`; training
     only: the policy and its export are unchanged). The stop reward is multiplied by the steps
     left in the budget, so a critic that sees them learns far cleaner advantages (docs/results.md
-    "Learning recipe"; off: the papers' value network)."""
+    "Learning recipe"; off: the papers' value network). ``noise_scale``: ``"PREFIX=FACTOR"``
+    entries: the scheduled std of every action joint whose name starts with ``PREFIX`` is
+    multiplied by ``FACTOR`` (the first matching entry counts; e.g. ``("leg_=0.2",)`` explores
+    ARMAR-4's legs 5x less than its arms; needs the scheduled std, training only)."""
 
     policy_layers: tuple[int, ...] = (256, 128)
     value_layers: tuple[int, ...] = (256, 128)
@@ -37,7 +41,42 @@ class NetworkConfig:
     mean_init_scale: float = 0.01
     mean_clip: float | None = None
     privileged_critic: bool = True
+    noise_scale: tuple[str, ...] = ()
 
+
+
+def parse_noise_scale(entry: str) -> tuple[str, float]:
+    """``(prefix, factor)`` of a ``NetworkConfig.noise_scale`` entry ``"PREFIX=FACTOR"``. Raises
+    ``ValueError`` naming the entry unless the prefix is non-empty and the factor a finite
+    number > 0."""
+    prefix, sep, text = str(entry).partition("=")
+    try:
+        factor = float(text)
+    except ValueError:
+        factor = float("nan")
+    if not sep or not prefix or not (np.isfinite(factor) and factor > 0):
+        raise ValueError(f"noise scale {entry!r}: expected PREFIX=FACTOR with a factor > 0 (e.g. leg_=0.2)")
+    return prefix, factor
+
+
+def noise_factors(entries: tuple[str, ...], joint_names) -> np.ndarray:
+    """Factors ``[n_actions]`` [-] on the policy's scheduled std, one per action joint of
+    ``joint_names`` (in action order), from ``NetworkConfig.noise_scale`` entries
+    ``"PREFIX=FACTOR"``: the first entry whose prefix starts the joint's name gives its factor,
+    1 where none does. Raises ``ValueError`` naming an entry that is malformed
+    (:func:`parse_noise_scale`) or matches no joint."""
+    names = list(joint_names)
+    factors = np.ones(len(names), np.float32)
+    claimed = np.zeros(len(names), bool)
+    for entry in entries:
+        prefix, factor = parse_noise_scale(entry)
+        hits = np.array([n.startswith(prefix) for n in names], bool)
+        if not hits.any():
+            raise ValueError(f"noise scale {entry!r}: no action joint starts with {prefix!r} "
+                             f"(joints: {', '.join(names)})")
+        factors[hits & ~claimed] = factor
+        claimed |= hits
+    return factors
 
 
 #: number of extra inputs of a privileged value network (``NetworkConfig.privileged_critic``;

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack.deploy.networks import CRITIC_FEATURES, networks  # noqa: F401  (re-exported)
+from mjx_pathtrack.deploy.networks import CRITIC_FEATURES, networks, noise_factors  # noqa: F401  (re-exported)
 from mjx_pathtrack.envs.wrappers import CriticFeatures, wrap_for_training
 
 #: name of the device axis under ``jax.pmap``
@@ -123,10 +123,12 @@ def check_batch(config, devices: int = 1) -> None:
                          f"multiple of num_envs ({c.num_envs})")
 
 
-def build(config, env, axis_name: str | None = None) -> Core:
+def build(config, env, axis_name: str | None = None, action_names=None) -> Core:
     """Assemble the PPO pieces for ``config`` (a :class:`~mjx_pathtrack.config.run.TrainConfig`) on the unwrapped training
     environment ``env``. ``axis_name``: the pmap device axis to average gradients and
-    observation statistics over (None: a single device)."""
+    observation statistics over (None: a single device). ``action_names``: the joint of each
+    action, needed when ``config.network.noise_scale`` scales the std per joint
+    (:func:`~mjx_pathtrack.deploy.networks.noise_factors`)."""
     import optax
     from brax.training import acting, types
     from brax.training.acme import running_statistics
@@ -135,6 +137,14 @@ def build(config, env, axis_name: str | None = None) -> Core:
 
     check_batch(config)
     c = config.ppo
+    factors = None
+    if config.network.noise_scale:
+        if config.network.final_noise_std is None:
+            raise ValueError("noise_scale scales the scheduled std: set final_noise_std (a learned std is not scaled)")
+        if action_names is None or len(action_names) != env.action_size:
+            raise ValueError(f"noise_scale needs the names of the {env.action_size} action joints, got "
+                             f"{None if action_names is None else len(action_names)}")
+        factors = jnp.asarray(noise_factors(config.network.noise_scale, action_names))
     episode_length = config.env_config().max_episode_steps() + 1
     network = networks(config.network)(env.observation_size, env.action_size,
                                        preprocess_observations_fn=running_statistics.normalize)
@@ -166,7 +176,9 @@ def build(config, env, axis_name: str | None = None) -> Core:
         return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.result_type(x)), learner)
 
     def scheduled(params, std):
-        return params if std is None else params.replace(policy=with_noise_std(params.policy, std))
+        if std is None:
+            return params
+        return params.replace(policy=with_noise_std(params.policy, std if factors is None else std * factors))
 
     def iteration(weights, learner: Learner, std=None, lr_scale=1.0):
         wenv = member_env(weights)

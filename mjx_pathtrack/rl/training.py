@@ -132,7 +132,7 @@ class _Program(NamedTuple):
     epochs: int
 
 
-def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
+def _program(config: TrainConfig, env: PathTrackingEnv, joint_names=None) -> _Program:
     """The compiled training program: one evaluation interval per call, over the local devices."""
     c = config
     devices = jax.local_device_count()
@@ -140,7 +140,7 @@ def _program(config: TrainConfig, env: PathTrackingEnv) -> _Program:
     if c.ppo.num_envs % (devices * processes):
         devices = 1 if c.ppo.num_envs % processes == 0 else devices
     axis = ppo.DEVICE_AXIS if devices > 1 else None
-    core = ppo.build(c, env, axis_name=axis)
+    core = ppo.build(c, env, axis_name=axis, action_names=joint_names)
     weights = ppo.reward_weights(c)
     epochs = max(c.eval.num_evals - 1, 1)
     iterations = max(int(np.ceil(c.ppo.num_timesteps / (epochs * core.steps_per_iteration))), 1)
@@ -243,7 +243,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
                               run_dir / "data", log=print if verbose else None)
     env, test_env = make_env(config, "train", root), make_env(config, "test", root)
     joint_names = getattr(test_env, "joint_names", None) or robots.load_robot(config.robot, dt=config.env.dt).joint_names
-    program = _program(config, env)
+    program = _program(config, env, joint_names)
     core = program.core
     steps_per_epoch = program.iterations * core.steps_per_iteration
     total = program.epochs * steps_per_epoch

@@ -499,6 +499,53 @@ def test_a_scheduled_std_is_not_learned_and_ends_at_the_schedule(tmp_path):
     assert expected < 0.5
 
 
+def test_noise_factors_scale_the_joints_each_prefix_names_first_match_wins():
+    from mjx_pathtrack.deploy.networks import noise_factors
+
+    names = ("leg_hip_r", "leg_knee_r", "torso_yaw", "arm_sho1_r", "leg_ankle_r")
+    np.testing.assert_allclose(noise_factors(("leg_knee=0.1", "leg_=0.2", "torso=0.5"), names),
+                               [0.2, 0.1, 0.5, 1.0, 0.2])
+    np.testing.assert_allclose(noise_factors((), names), np.ones(5))
+    for bad, match in (("leg_", "PREFIX=FACTOR"), ("=0.2", "PREFIX=FACTOR"), ("leg_=0", "factor > 0"),
+                       ("leg_=-1", "factor > 0"), ("leg_=inf", "factor > 0"), ("leg_=x", "factor > 0"),
+                       ("foot_=0.5", "no action joint starts with 'foot_'")):
+        with pytest.raises(ValueError, match=match):
+            noise_factors((bad,), names)
+
+
+def test_noise_scale_option_from_the_command_line_and_its_errors(tmp_path):
+    import train as cli
+    from mjx_pathtrack.config.run import ConfigError, validate_config
+
+    _, cfg = cli.parse_args(["--noise-scale", "iiwa_joint_1=0.2", "iiwa_joint_7=0.5"])
+    assert cfg.network.noise_scale == ("iiwa_joint_1=0.2", "iiwa_joint_7=0.5")
+    assert cli.parse_args([])[1].network.noise_scale == ()
+    assert TrainConfig.from_json(cfg.to_json()) == cfg
+    with pytest.raises(ConfigError, match="--noise-scale: noise scale 'iiwa_joint_1:0.2'"):
+        validate_config(cfg.replace(noise_scale=("iiwa_joint_1:0.2",)))
+    with pytest.raises(ConfigError, match="--noise-scale: scales the scheduled std"):
+        validate_config(cfg.replace(final_noise_std=None))
+    # a prefix that names no joint of the robot: refused before training, nothing left behind
+    config = TrainConfig.from_flat({**TINY, "noise_scale": ["leg_=0.2"]})
+    with pytest.raises(ValueError, match="no action joint starts with 'leg_'"):
+        train(config, tmp_path / "run", verbose=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_noise_scale_multiplies_the_scheduled_std_of_the_named_joints(tmp_path):
+    """The run ends with the schedule's std times each joint's factor (the others unscaled), in
+    the saved parameters that the sampled policy uses."""
+    from mjx_pathtrack.rl import ppo
+
+    config = TrainConfig.from_flat({**TINY, "num_timesteps": 1280, "final_noise_std": 0.1,
+                                    "noise_scale": ["iiwa_joint_2=0.25", "iiwa_joint_=0.5"]})
+    _, params, _ = train(config, tmp_path / "run", verbose=False)
+    std = np.exp(np.asarray(params[1]["params"]["std_logparam"]["log_value"]))
+    iterations = 1280 // (8 * 5 * 2)
+    expected = float(ppo.noise_std(config.network, (iterations - 1) / iterations))
+    np.testing.assert_allclose(std, expected * np.array([0.5, 0.25, 0.5, 0.5, 0.5, 0.5, 0.5]), rtol=1e-5)
+
+
 # --- exact resume, run-directory safety, clear errors (issue: safety and data) -----------------
 
 EXACT = {**TINY, "num_evals": 4}
