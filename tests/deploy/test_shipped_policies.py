@@ -1,0 +1,53 @@
+"""The trained policies shipped in ``policies/`` (policies/README.md): each loads with today's
+code as a run directory and as an export, the two act alike, and the ball policy still balances
+the ball on test paths. A change to the observation, the action mapping or the export format
+that would silently invalidate them fails here."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mjx_pathtrack  # noqa: F401
+import jax
+import jax.numpy as jnp
+
+from mjx_pathtrack.deploy.export import load_policy
+from mjx_pathtrack.evaluation import report as R
+
+REPO = Path(__file__).resolve().parents[2]
+POLICIES = sorted(p for p in (REPO / "policies").iterdir() if (p / "config.json").is_file())
+
+
+def test_policies_are_shipped():
+    assert [p.name for p in POLICIES] == ["ball_on_plate"]
+
+
+@pytest.mark.parametrize("run", POLICIES, ids=lambda p: p.name)
+def test_the_run_directory_and_its_export_give_the_same_actions(run):
+    from_run, from_export = R.load_policy_source(str(run)), R.load_policy_source(str(run / "export"))
+    assert (from_run.kind, from_export.kind) == ("run", "export")
+    assert from_export.config == from_run.config
+    size = load_policy(run / "export").observation_size
+    obs = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (32, size)), jnp.float32)
+    key = jax.random.PRNGKey(0)
+    a_run = np.clip(np.asarray(from_run.policy(obs, key)), -1, 1)
+    np.testing.assert_allclose(np.asarray(from_export.policy(obs, key)), a_run, rtol=1e-5, atol=1e-6)
+    assert np.std(a_run) > 0.05  # a trained policy, not a constant
+
+
+def test_the_shipped_ball_policy_balances_the_ball_on_test_paths(tmp_path):
+    """16 whole test paths in the rolling-ball (training) scene, deterministic export: the full
+    evaluation (200 paths, docs/results.md) drops the ball in 0.5 % and reaches the end in 99.5 %."""
+    out = tmp_path / "eval"
+    subprocess.run([sys.executable, "evaluate.py", "policies/ball_on_plate/export", "--full-paths", "--episodes", "16",
+                    "--no-toppra", "--timing-decisions", "0", "--out", str(out)],
+                   cwd=REPO, check=True, capture_output=True, text=True)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["episodes"] == 16 and m["ball_physics"] == "rolling"
+    assert m["task_failed_rate"] <= 1 / 16 and m["end_reached_rate"] >= 15 / 16
+    assert m["end_time_s_mean"] < 3.5 and m["cart_pos_dev_cm_mean"] < 3.0
+    assert m["limit_audit"]["ok"]
