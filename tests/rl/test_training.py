@@ -623,8 +623,8 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
 
     real = training._program
 
-    def poisoned(config, env):
-        program = real(config, env)
+    def poisoned(config, env, joint_names=None):
+        program = real(config, env, joint_names)
         calls = []
 
         def epoch(learner, start, end):
