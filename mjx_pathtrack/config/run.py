@@ -194,6 +194,7 @@ FLAT_NAMES: dict[str, tuple[str, ...]] = {
     "cartesian_reward": ("ball_on_plate.cartesian_reward",),
     "legs": ("balance.legs",),
     "balance_reward": ("balance.reward",),
+    "leg_prior": ("balance.leg_prior",),
 }
 
 
@@ -204,7 +205,7 @@ TrainConfig.FLAT_NAMES = FLAT_NAMES
 #: command line's choices and :func:`validate_config`'s check
 CHOICES: dict[str, tuple[str, ...]] = {"executor": EXECUTORS, "task": TASKS, "knots_frame": KNOTS_FRAMES,
                                        "end_braking": END_BRAKING, "end_stop": END_STOP,
-                                       "ball_physics": ball_on_plate.PHYSICS}
+                                       "ball_physics": ball_on_plate.PHYSICS, "leg_prior": humanoid_balance.LEG_PRIORS}
 
 
 def validate_config(config: TrainConfig, devices: int = 1) -> None:
@@ -223,6 +224,9 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         fail("robot", f"unknown robot {c.robot!r}; known: {', '.join(robots.known_robots())}")
     if c.task == "balance" and c.balance.legs not in humanoid_balance.LEGS:
         fail("legs", f"{c.balance.legs!r} is not one of {', '.join(humanoid_balance.LEGS)}")
+    if c.balance.leg_prior != "none" and (c.task != "balance" or c.balance.legs != "controlled"):
+        fail("leg_prior", f"{c.balance.leg_prior!r} adds to the policy's leg actions: it needs --task balance "
+                          f"--legs controlled")
     for name in ("dt", "duration", "end_knot_tolerance", "learning_rate", "init_noise_std", "mean_init_scale",
                  "deviation_threshold", "terminate_deviation"):
         value = get(name)

@@ -132,6 +132,18 @@ def acceleration_to_action(acc: Array, a_min: Array, a_max: Array) -> Array:
     return jnp.where(wide, jnp.clip(action, -1.0, 1.0), 0.0)
 
 
+def hold_action(limits: JointLimits, p: Array, v: Array, a: Array, dt, home: Array, omega: float) -> Array:
+    """Actions ``[..., n]`` that hold joints at ``home`` ``[n]`` [rad]: the acceleration of a
+    critically damped spring of natural frequency ``omega`` [rad/s], ``-2 omega v - omega^2
+    (p - home)`` [rad/s^2], clipped into the safe range of the state ``p, v, a`` ``[..., n]`` for
+    a step of ``dt`` [s] and mapped to an action. Smooth in the state, unlike the fastest stop
+    (:func:`braking_acceleration`), so a network learns it, and a policy can add to it
+    (:mod:`mjx_pathtrack.envs.action_prior`)."""
+    a_min, a_max = safe_acceleration_range(limits, p, v, a, dt)
+    spring = -2.0 * omega * v - omega ** 2 * (p - home)
+    return acceleration_to_action(spring, a_min, a_max)
+
+
 class SafeRange(NamedTuple):
     a_min: Array
     a_max: Array

@@ -84,7 +84,7 @@ def noise_factors(entries: tuple[str, ...], joint_names) -> np.ndarray:
 CRITIC_FEATURES = len(PathTrackingEnv.CRITIC_FEATURES)
 
 
-def networks(config):
+def networks(config, prior=None):
     """Brax PPO network factory for ``config`` (a :class:`~mjx_pathtrack.config.run.NetworkConfig`): separate policy and value
     MLPs (``policy_layers``, ``value_layers``, swish), a Gaussian policy whose samples the
     environment clips to [-1, 1], a learned state-independent log-std starting at
@@ -96,7 +96,32 @@ def networks(config):
     (:class:`~mjx_pathtrack.envs.wrappers.CriticFeatures`), the observation statistics cover all of
     them, and the policy normalises and reads only the first ``observation_size``: the same
     parameters then act on the plain observation (evaluation, export) and on the extended one
-    (training)."""
+    (training).
+
+    ``prior``: an action prior (:mod:`mjx_pathtrack.envs.action_prior`; a function of the
+    observation, ``[..., obs] -> [..., n_actions]``, without parameters) added to the policy's
+    mean, so that at a zero network output the policy acts as the prior; the deterministic policy
+    and its export include it. None: none."""
+    factory = _networks(config)
+    if prior is None:
+        return factory
+
+    def make(observation_size: int, action_size: int, preprocess_observations_fn):
+        nets = factory(observation_size, action_size, preprocess_observations_fn=preprocess_observations_fn)
+        apply = nets.policy_network.apply
+
+        def apply_with_prior(processor_params, policy_params, obs):
+            mean, std = apply(processor_params, policy_params, obs)
+            return mean + prior(obs).astype(mean.dtype), std
+
+        policy = dataclasses.replace(nets.policy_network, apply=apply_with_prior)
+        return nets.replace(policy_network=policy)
+
+    return make
+
+
+def _networks(config):
+    """:func:`networks` without a prior."""
     from brax.training import networks as brax_nets
     from brax.training.agents.ppo import networks as brax_networks
 

@@ -141,11 +141,13 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
+    prior = None
     if config.task == "balance":
         from mjx_pathtrack.envs.tasks import humanoid_balance
 
         n = len(humanoid_balance.eval_robot(config).joint_names)
         obs_size = humanoid_balance.observation_size(config.env.n_next, config.balance.legs)
+        prior = humanoid_balance.action_prior(config)
     else:
         robot = robots.load_robot(config.robot, dt=config.env.dt)
         n = robot.n_joints
@@ -155,7 +157,7 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic
         from mjx_pathtrack.envs.tasks.ball_on_plate import observation_size
 
         obs_size = observation_size(n, config.env.n_next, sensor=config.ball_on_plate.reward > 0)
-    nets = ppo_networks(config.network)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
+    nets = ppo_networks(config.network, prior)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
     policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params, deterministic)
     try:
         out = jax.eval_shape(policy, jax.ShapeDtypeStruct((1, obs_size), jnp.float32), jax.random.PRNGKey(0))

@@ -31,6 +31,7 @@ from mjx_pathtrack.rl import ppo
 from mjx_pathtrack.rl import warm_start as warm
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.envs import registry
+from mjx_pathtrack.envs.tasks import humanoid_balance
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 from mjx_pathtrack.deploy.export import export_policy
 from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
@@ -183,9 +184,16 @@ def _host(tree):
 
 def _warm_start(config: TrainConfig, program: _Program, learner, env, joint_names, verbose: bool):
     """``learner`` started from ``config.init_from``'s networks (:mod:`mjx_pathtrack.rl.warm_start`);
-    joints that run did not drive are fitted to hold still."""
+    joints that run did not drive are fitted to hold still, unless an action prior holds them
+    (``--leg-prior hold``: their zero mean head leaves them the prior's hold actions)."""
     layout = warm.PolicyLayout.of_env(env, joint_names)
     learner, new = warm.warm_start(learner, config.init_from, program.devices, layout)
+    prior = humanoid_balance.action_prior(config)
+    held = np.intersect1d(new, prior.joints) if prior is not None else np.zeros(0, np.int64)
+    new = np.setdiff1d(new, held)
+    if len(held) and verbose:
+        print(f"--init-from: {len(held)} joints new to the source policy "
+              f"({', '.join(joint_names[i] for i in held)}) held still by the leg prior", flush=True)
     if len(new):
         learner, fit = warm.fit_new_joints(program.core.make_policy, learner, env, new, program.devices,
                                            jax.random.PRNGKey(config.seed + 2))

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack.core import limits as L
+from mjx_pathtrack.envs import action_prior
 from mjx_pathtrack.config.run_dir import RunDirError
 
 #: observation blocks with one entry per actuated joint (:func:`~mjx_pathtrack.deploy.export.observation_layout`)
@@ -206,19 +207,13 @@ def warm_start(learner, source: str | Path, devices: int, layout: PolicyLayout |
 #: stiffer hold forgives more; on ARMAR-4's legs (A 3 rad/s^2, ankle roll +-0.025 rad) row 2's
 #: policy with the fitted legs fell in 37 % of 128 episodes at 3 rad/s (2 rounds of 3000
 #: iterations), in 11 % at 5 (3 rounds of 8000, the defaults of :func:`fit_new_joints`).
-HOLD_OMEGA = 5.0
+HOLD_OMEGA = action_prior.HOLD_OMEGA
 
 
 def hold_actions(env, track, omega: float = HOLD_OMEGA) -> jax.Array:
-    """Actions ``[..., n]`` that hold every joint of ``env`` at its start position ``env.home``:
-    the acceleration of a critically damped spring, ``-2 omega v - omega^2 (p - home)``
-    [rad/s^2], clipped into the state's safe range and mapped back to an action (the inverse of
-    the safe-range mapping). Smooth in the state, unlike the fastest stop
-    (:func:`~mjx_pathtrack.core.limits.braking_acceleration`), so a network fits it closely."""
-    lim, dt = env.limits, env.config.dt
-    a_min, a_max = L.safe_acceleration_range(lim, track.p, track.v, track.a, dt)[:2]
-    spring = -2.0 * omega * track.v - omega ** 2 * (track.p - env.home)
-    return L.acceleration_to_action(spring, a_min, a_max)
+    """Actions ``[..., n]`` that hold every joint of ``env`` at its start position ``env.home``
+    (:func:`~mjx_pathtrack.core.limits.hold_action` of the state ``track``)."""
+    return L.hold_action(env.limits, track.p, track.v, track.a, env.config.dt, env.home, omega)
 
 
 def fit_new_joints(make_policy, learner, env, new_joints: np.ndarray, devices: int, key, *, n_envs: int = 256,

@@ -226,3 +226,32 @@ def test_balance_weights_scale_only_the_balance_terms():
     assert (half.base_pos, half.tilt) == (0.1, 1.0)
     assert cfg.replace(balance_reward=0.0).env_config().reward.tilt == 0.0
     assert TrainConfig().env_config().reward.tilt == 0.0  # plain path tracking: no balance terms
+
+
+def test_leg_prior_holds_the_legs_of_the_controlled_legs_env(legs_robot):
+    """``--leg-prior hold``: the prior built from the config alone (as evaluation and export
+    rebuild it) reads, from the environment's observation, the actions that hold the environment's
+    leg joints at its home (:func:`warm_start.hold_actions`), and leaves the upper body's at 0."""
+    from mjx_pathtrack.rl.warm_start import hold_actions
+
+    env = make(legs_robot, "controlled")
+    cfg = TrainConfig().replace(task="balance", robot="armar4", executor="mjx", legs="controlled", leg_prior="hold")
+    prior = H.action_prior(cfg)
+    legs = np.flatnonzero(~np.asarray(legs_robot.path_mask))
+    np.testing.assert_array_equal(prior.joints, legs)
+    track = env.reset(jax.random.PRNGKey(0)).pipeline_state
+    rng = np.random.default_rng(3)
+    lo, hi = np.asarray(env.limits.pos_min), np.asarray(env.limits.pos_max)
+    n = env.action_size
+    ps = np.clip(np.asarray(env.home) + rng.uniform(-0.05, 0.05, (16, n)), lo, hi)
+    vs = rng.uniform(-0.3, 0.3, (16, n)) * np.asarray(env.limits.vel)
+    accs = rng.uniform(-0.3, 0.3, (16, n)) * np.asarray(env.limits.acc)
+    observe = jax.jit(lambda p, v, a: env.observe(track._replace(p=p, v=v, a=a)))
+    for p, v, a in zip(*(jnp.asarray(x, jnp.float32) for x in (ps, vs, accs))):
+        moved = track._replace(p=p, v=v, a=a)
+        out = np.asarray(prior(observe(p, v, a)))
+        np.testing.assert_allclose(out[legs], np.asarray(hold_actions(env, moved))[legs], atol=2e-4)
+        assert np.all(out[np.asarray(legs_robot.path_mask)] == 0.0)
+    assert H.action_prior(cfg.replace(leg_prior="none")) is None
+    with pytest.raises(ValueError, match="needs legs='controlled'"):
+        H.action_prior(cfg.replace(legs="fixed"))

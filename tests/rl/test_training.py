@@ -660,6 +660,8 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     (["--final-noise-std", "0"], "--final-noise-std: must be a finite number > 0"),
     (["--final-learning-rate", "0"], "--final-learning-rate: must be a finite number > 0"),
     (["--end-knot-tolerance", "0"], "--end-knot-tolerance: must be a finite number > 0"),
+    (["--leg-prior", "hold"], "--leg-prior: 'hold' adds to the policy's leg actions: it needs --task balance --legs controlled"),
+    (["--task", "balance", "--legs", "fixed", "--leg-prior", "hold"], "--leg-prior: .*needs --task balance --legs controlled"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, message):
     import train as cli

@@ -52,6 +52,7 @@ from mujoco import mjx
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.envs.action_prior import HoldPrior
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
 from mjx_pathtrack.envs.executors import MjxExecutor
 from mjx_pathtrack.robots.scene import PELVIS_SITE
@@ -281,10 +282,39 @@ def balance_weights(scale: float = 1.0, base: R.RewardWeights = BALANCE_WEIGHTS)
 class TaskConfig:
     """The balance task's own training settings (``TrainConfig.balance``): ``legs``
     (:data:`LEGS`: ``"fixed"``, 18 actions, or ``"controlled"``, 30); ``reward``: scale of the
-    papers' balance terms (0: the "no balancing reward" variant)."""
+    papers' balance terms (0: the "no balancing reward" variant); ``leg_prior``
+    (:data:`LEG_PRIORS`): ``"hold"`` adds the actions that hold the legs still at
+    :func:`standing_home` to the policy's leg actions (controlled legs only; :func:`action_prior`),
+    ``"none"``: the network's actions alone, as in the papers."""
 
     legs: str = "fixed"
     reward: float = 1.0
+    leg_prior: str = "none"
+
+
+#: ``--leg-prior``: what the policy's leg actions are added to (:func:`action_prior`)
+LEG_PRIORS = ("none", "hold")
+
+
+def action_prior(config) -> HoldPrior | None:
+    """The action prior of a :class:`~mjx_pathtrack.config.run.TrainConfig`'s policy
+    (:mod:`mjx_pathtrack.envs.action_prior`): with ``balance.leg_prior == "hold"`` the
+    :class:`~mjx_pathtrack.envs.action_prior.HoldPrior` of the 12 leg joints of ``armar4_legs`` at
+    :func:`standing_home` (the policy's actions are added to it); None otherwise. Built from the
+    config alone, so that evaluation and export rebuild the training's policy without its
+    environment. Raises ``ValueError`` if the prior is asked for without controlled legs."""
+    if getattr(config, "task", None) != "balance" or config.balance.leg_prior == "none":
+        return None
+    if config.balance.leg_prior not in LEG_PRIORS:
+        raise ValueError(f"leg_prior must be one of {LEG_PRIORS}, got {config.balance.leg_prior!r}")
+    if config.balance.legs != "controlled":
+        raise ValueError(f"leg_prior {config.balance.leg_prior!r} needs legs='controlled' (the policy moves no "
+                         f"leg with legs={config.balance.legs!r})")
+    from mjx_pathtrack.robots import registry as robots
+
+    robot = robots.load_robot(ROBOT, dt=config.env.dt)
+    legs = np.flatnonzero(~np.asarray(robot.path_mask, bool))
+    return HoldPrior(robot.limits, legs, standing_home(robot), config.env.dt)
 
 
 #: ``train.py --task balance``: the papers' ARMAR-4 balancing settings (flat option names)
