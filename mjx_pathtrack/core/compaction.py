@@ -90,6 +90,8 @@ def _compacted(fn, need, args, fill):
     flat_need = jnp.broadcast_to(need, shape).reshape(-1)
     flat_args = [jnp.broadcast_to(jnp.asarray(x), shape).reshape(-1) for x in args]
     n = flat_need.shape[0]
+    if not isinstance(n, (int, np.integer)):  # a symbolic size (jax.export for any batch): no static chunk
+        return _everywhere(fn, need, args, fill)
     chunk = chunk_size(n)
     n_slots = -(-n // chunk) * chunk
     # indices of the needing lanes first, padded with n (an index past the end: dropped)

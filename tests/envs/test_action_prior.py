@@ -131,3 +131,16 @@ def test_a_network_with_a_prior_acts_as_the_prior_plus_its_mean(privileged):
     sampled = ppo_nets.make_inference_fn(with_prior)((stats, zeroed))(obs, jax.random.PRNGKey(1))[0]
     spread = np.asarray(sampled - prior(obs))
     assert 0.05 < spread.std() < 0.2  # noise std 0.1 around the prior
+
+
+def test_the_hold_prior_exports_for_any_batch_size():
+    """The export serializes the policy for a symbolic batch size; the safe range's search runs
+    on every lane there (its compaction needs a static size) and gives the same actions."""
+    lim = _limits()
+    prior = HoldPrior(lim, [1, 2, 4], np.zeros(5, np.float32), DT)
+    batch = jax.export.symbolic_shape("batch")[0]
+    exported = jax.export.export(jax.jit(prior))(jax.ShapeDtypeStruct((batch, 3 * 5 + 7), jnp.float32))
+    restored = jax.export.deserialize(exported.serialize())
+    for count in (1, 300):
+        obs = _observation(lim, *_states(lim, count, seed=count))
+        np.testing.assert_allclose(np.asarray(restored.call(obs)), np.asarray(jax.jit(prior)(obs)), atol=1e-6)
