@@ -55,6 +55,7 @@ class HoldPrior:
         self.home = jnp.asarray(home[joints])
 
     def __call__(self, obs: Array) -> Array:
+        """Hold actions ``[..., n]`` in [-1, 1] (0 on joints not held) of observations ``[..., obs]``."""
         n, idx, lim = self.n, self.joints, self.limits
         p = lim.pos_min + 0.5 * (obs[..., idx] + 1.0) * (lim.pos_max - lim.pos_min)  # tracking.normalize_position
         v = obs[..., n + idx] * lim.vel

@@ -77,6 +77,32 @@ def test_hold_prior_pulls_a_displaced_joint_back_and_brakes_a_moving_one():
     assert float(acc[0, 1]) < -0.1
 
 
+def test_hold_prior_on_a_real_observation_matches_the_environments_hold_actions():
+    """Read from ``PathTrackingEnv.observe`` (iiwa, kinematic), the prior gives the actions that
+    hold the environment's joints at its ``home`` (``warm_start.hold_actions`` of the state)."""
+    from path_fixtures import random_walk_paths
+
+    from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
+    from mjx_pathtrack.rl.warm_start import hold_actions
+    from mjx_pathtrack.robots import iiwa
+
+    env = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(), 0.5, EnvConfig(),
+                          home=np.linspace(-0.3, 0.3, 7))
+    held = np.array([0, 2, 3, 6])
+    prior = HoldPrior(env.limits, held, env.home, env.config.dt)
+    track = jax.jit(env.reset)(jax.random.PRNGKey(0)).pipeline_state
+    p, v, a = _states(env.limits, 32, seed=2)
+
+    @jax.jit
+    def both(p, v, a):
+        moved = track._replace(p=p, v=v, a=a)
+        return prior(env.observe(moved)), hold_actions(env, moved)
+
+    out, expected = (np.asarray(x) for x in jax.vmap(both)(p, v, a))
+    np.testing.assert_allclose(out[:, held], expected[:, held], atol=2e-4)
+    assert np.all(out[:, [1, 4, 5]] == 0.0) and np.abs(out[:, held]).max() > 0.5
+
+
 def test_bad_hold_priors_are_refused():
     lim = _limits()
     home = np.zeros(5, np.float32)

@@ -228,30 +228,24 @@ def test_balance_weights_scale_only_the_balance_terms():
     assert TrainConfig().env_config().reward.tilt == 0.0  # plain path tracking: no balance terms
 
 
-def test_leg_prior_holds_the_legs_of_the_controlled_legs_env(legs_robot):
+def test_leg_prior_holds_the_legs_of_the_controlled_legs_env_at_its_home(legs_robot):
     """``--leg-prior hold``: the prior built from the config alone (as evaluation and export
-    rebuild it) reads, from the environment's observation, the actions that hold the environment's
-    leg joints at its home (:func:`warm_start.hold_actions`), and leaves the upper body's at 0."""
-    from mjx_pathtrack.rl.warm_start import hold_actions
-
+    rebuild it) holds exactly the environment's leg joints, at the environment's home, with its
+    limits and decision step (that it reads the hold actions of the observed state:
+    tests/envs/test_action_prior.py); it leaves the upper body's actions at 0."""
     env = make(legs_robot, "controlled")
     cfg = TrainConfig().replace(task="balance", robot="armar4", executor="mjx", legs="controlled", leg_prior="hold")
     prior = H.action_prior(cfg)
     legs = np.flatnonzero(~np.asarray(legs_robot.path_mask))
+    assert len(legs) == 12 and prior.n == env.action_size == 30
     np.testing.assert_array_equal(prior.joints, legs)
-    track = env.reset(jax.random.PRNGKey(0)).pipeline_state
-    rng = np.random.default_rng(3)
-    lo, hi = np.asarray(env.limits.pos_min), np.asarray(env.limits.pos_max)
-    n = env.action_size
-    ps = np.clip(np.asarray(env.home) + rng.uniform(-0.05, 0.05, (16, n)), lo, hi)
-    vs = rng.uniform(-0.3, 0.3, (16, n)) * np.asarray(env.limits.vel)
-    accs = rng.uniform(-0.3, 0.3, (16, n)) * np.asarray(env.limits.acc)
-    observe = jax.jit(lambda p, v, a: env.observe(track._replace(p=p, v=v, a=a)))
-    for p, v, a in zip(*(jnp.asarray(x, jnp.float32) for x in (ps, vs, accs))):
-        moved = track._replace(p=p, v=v, a=a)
-        out = np.asarray(prior(observe(p, v, a)))
-        np.testing.assert_allclose(out[legs], np.asarray(hold_actions(env, moved))[legs], atol=2e-4)
-        assert np.all(out[np.asarray(legs_robot.path_mask)] == 0.0)
+    np.testing.assert_array_equal(np.asarray(prior.home), np.asarray(env.home)[legs])
+    for field in ("pos_min", "pos_max", "vel", "acc", "jerk"):
+        np.testing.assert_array_equal(np.asarray(getattr(prior.limits, field)),
+                                      np.asarray(getattr(env.limits, field))[legs])
+    assert prior.dt == pytest.approx(env.config.dt)
+    obs = jnp.zeros((2, H.observation_size(8, "controlled")))
+    assert np.all(np.asarray(prior(obs))[:, np.asarray(legs_robot.path_mask)] == 0.0)
     assert H.action_prior(cfg.replace(leg_prior="none")) is None
     with pytest.raises(ValueError, match="needs legs='controlled'"):
         H.action_prior(cfg.replace(legs="fixed"))
