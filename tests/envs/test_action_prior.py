@@ -52,7 +52,6 @@ def test_hold_prior_reads_the_hold_action_of_the_observed_state_on_held_joints_o
     assert out.shape == (256, 5)
     np.testing.assert_allclose(out[:, held], expected[:, held], atol=2e-4)
     assert np.all(out[:, [0, 2]] == 0.0)
-    assert np.all(np.abs(out) <= 1.0)
     assert np.abs(out[:, held]).max() > 0.5  # the states are not all at rest: the check can fail
     # at rest at home the hold is to stay: the action of zero acceleration
     z = jnp.zeros((1, 5))
