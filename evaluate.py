@@ -28,7 +28,12 @@ def parse_args(argv=None):
     parser.add_argument("--checkpoint", default=None, metavar="latest|STEP",
                         help="a run directory's checkpoint (a run still training or cut off) instead of its final "
                              "params.pkl; default output SOURCE/eval_STEP")
-    parser.add_argument("--paths", default=None, help="user path file (.npz/.json/.csv) instead of the dataset split")
+    parser.add_argument("--paths", default=None,
+                        help="user path file (.npz/.json/.csv) instead of the dataset split; each path is re-knotted "
+                             "by the policy's knot rule (its training data's), knots up to the URDF limits are moved "
+                             "onto the model's, and deviations are measured against your curve")
+    parser.add_argument("--keep-knots", action="store_true",
+                        help="with --paths: give the policy the knots as they are in the file (no re-knotting)")
     parser.add_argument("--split", default="test", choices=("train", "test"))
     parser.add_argument("--episodes", type=int, default=None, help="default: one per path")
     parser.add_argument("--seed", type=int, default=0, help="sub-path draw")
@@ -101,16 +106,27 @@ def main(argv=None) -> int:
                                                             "end_knot_tolerance", "end_tolerance", "ball_physics")}
         overrides = {name: value for name, value in overrides.items() if value is not None}
         source = dataclasses.replace(source, config=source.config.replace(**overrides))
-        env, robot, label = R.build_env(source, args.paths, args.split, args.full_paths, args.floating_base)
+        if args.keep_knots and not args.paths:
+            raise R.EvaluationError("--keep-knots applies to --paths only")
+        user = None
+        if args.paths:
+            user = R.load_user_paths(args.paths, source.config.robot,
+                                     None if args.keep_knots else source.training_knot_rule())
+        env, robot, label = R.build_env(source, user, args.split, args.full_paths, args.floating_base)
     except (R.EvaluationError, DatasetError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
         return 2
     from mjx_pathtrack.evaluation import jerk_optimum
 
     cache = None if args.topp3_cache == "none" else Path(args.topp3_cache or jerk_optimum.default_cache())
+    if user is not None:
+        print("\n".join(user.report_lines()) + "\n")
     summary, table, first = R.run_evaluation(env, source.policy, robot, args.episodes, args.seed, args.batch,
                                              args.timing_decisions, not args.no_toppra, args.jerk_optimum, cache,
-                                             max(args.workers, 1))
+                                             max(args.workers, 1), measure=None if user is None else user.curves)
+    if user is not None:
+        summary["user_paths"] = {"knot_rule": None if user.rule is None else user.rule.to_json(),
+                                 "paths": [p.summary() for p in user.prepared]}
     episode = min(max(args.plot_episode, 0), len(first.s_start) - 1)
     ball_task = source.config.task == "ball_on_plate"
     whole = args.full_paths or ball_task  # the ball task always runs whole paths

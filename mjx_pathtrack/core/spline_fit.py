@@ -89,14 +89,17 @@ def dedup_knots(knots) -> np.ndarray:
     return k
 
 
-def fit_spline(knots, samples_per_segment: int = SAMPLES_PER_SEGMENT) -> SplineFit:
-    """Natural cubic spline through ``knots [K, n]`` (chord-length parameter), with arc table."""
+def fit_spline(knots, samples_per_segment: int = SAMPLES_PER_SEGMENT, start_slope=None) -> SplineFit:
+    """Natural cubic spline through ``knots [K, n]`` (chord-length parameter), with arc table.
+    ``start_slope [n]``: the first derivative at the start (per unit chord length) instead of a
+    natural start, as :func:`~mjx_pathtrack.core.spline.replace_ahead` continues a path."""
     if samples_per_segment < 1:
         raise ValueError(f"samples_per_segment must be >= 1, got {samples_per_segment}")
     k = dedup_knots(knots)
     h = np.linalg.norm(np.diff(k, axis=0), axis=1)
     u = np.concatenate([[0.0], np.cumsum(h)])
-    cs = CubicSpline(u, k, bc_type="natural", axis=0)
+    start = (2, np.zeros(k.shape[1])) if start_slope is None else (1, np.asarray(start_slope, np.float64))
+    cs = CubicSpline(u, k, bc_type=(start, (2, np.zeros(k.shape[1]))), axis=0)
     coeffs = np.ascontiguousarray(cs.c[::-1].transpose(1, 0, 2))  # [K-1, 4, n], c0..c3
     table_s, table_dtds = _arc_table(coeffs, h, samples_per_segment, np)
     return SplineFit(k, h, coeffs, table_s, table_dtds, samples_per_segment)

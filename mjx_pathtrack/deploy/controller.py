@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
+from types import SimpleNamespace
 from typing import Callable, NamedTuple, NoReturn
 
 import jax
@@ -47,8 +48,12 @@ import numpy as np
 
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import spline as S
-from mjx_pathtrack.deploy.export import MANIFEST_ENV_SETTINGS, env_settings
+from mjx_pathtrack.core.knot_rule import KnotRule
+from mjx_pathtrack.deploy.export import MANIFEST_ENV_SETTINGS, env_settings, manifest_knot_rule
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
+from mjx_pathtrack.paths.datasets import DatasetError
+from mjx_pathtrack.paths.user_paths import PreparedPath, into_limits, prepare_path
+from mjx_pathtrack.robots.registry import POS_BUFFER
 
 Array = jax.Array
 
@@ -118,7 +123,16 @@ class OnlineTracker:
     the manifest, else "fastest"; ``end_knot_tolerance`` [rad] with it); a fault always brakes every
     joint as fast as it can;
     position ``[n]`` current joint positions, velocity / acceleration ``[n]`` (default 0);
-    controller_dt [s]: setpoint period, must divide ``dt``; max_knots: capacity of the reference.
+    controller_dt [s]: setpoint period, must divide ``dt``; max_knots: capacity of the reference;
+    knot_rule: where the policy's training paths have their knots (from the manifest of an
+    export; for a plain callable default the papers' curvature rule capped at
+    ``max_dis_between_knots``): every path given to :meth:`set_path` / :meth:`update_path` is
+    re-knotted by it, so that the policy sees knots like its training knots whatever spacing
+    the caller chose (:mod:`mjx_pathtrack.paths.user_paths`); ``keep_knots``: give the policy the
+    knots as they come; limit_allowance [rad]: knots up to this far beyond the position limits
+    (the robot's URDF limits lie :data:`~mjx_pathtrack.robots.registry.POS_BUFFER` outside the
+    model's) are moved onto them, further ones are refused. :attr:`path_report` tells what was
+    done to the last accepted path.
     Raises ``ValueError`` for inconsistent inputs or an unsafe initial state.
     """
 
@@ -127,7 +141,8 @@ class OnlineTracker:
                  n_next: int | None = None, max_dis_between_knots: float | None = None, path_joints=None,
                  max_knots: int = MAX_KNOTS, knots_frame: str | None = None, end_tolerance: float = 0.0,
                  end_braking: str | None = None, end_stop: str | None = None,
-                 end_knot_tolerance: float | None = None):
+                 end_knot_tolerance: float | None = None, knot_rule: KnotRule | None = None, keep_knots: bool = False,
+                 limit_allowance: float = POS_BUFFER):
         manifest = getattr(policy, "manifest", None)
         settings = dict(knots_frame=knots_frame, end_braking=end_braking, end_stop=end_stop,
                         end_knot_tolerance=end_knot_tolerance)
@@ -140,13 +155,14 @@ class OnlineTracker:
                 dt=manifest["dt"], n_next=manifest["n_next"], max_dis_between_knots=manifest["max_dis_between_knots"],
                 path_joints=manifest["path_joints"])
             given = dict(limits=limits, dt=dt, n_next=n_next, max_dis_between_knots=max_dis_between_knots,
-                         path_joints=path_joints, **settings)
+                         path_joints=path_joints, knot_rule=knot_rule, **settings)
             clash = [k for k, v in given.items() if v is not None]
             if clash:
                 raise ValueError(f"{', '.join(clash)} come(s) from the export manifest; do not pass them")
             limits, dt, n_next = from_manifest["limits"], from_manifest["dt"], from_manifest["n_next"]
             max_dis_between_knots, path_joints = from_manifest["max_dis_between_knots"], from_manifest["path_joints"]
             settings = env_settings(manifest)
+            knot_rule = manifest_knot_rule(manifest)
         else:  # a plain callable: the settings a manifest without them implies, unless given
             settings = {key: MANIFEST_ENV_SETTINGS[key] if value is None else value for key, value in settings.items()}
             settings = {key: value for key, value in settings.items() if value is not None}
@@ -172,6 +188,13 @@ class OnlineTracker:
             raise ValueError(f"n_next must be >= 1, got {n_next}")
         if int(max_knots) < 3:
             raise ValueError(f"max_knots must be >= 3, got {max_knots}")
+        if not (np.isfinite(limit_allowance) and limit_allowance >= 0):
+            raise ValueError(f"limit_allowance must be a finite number >= 0 [rad], got {limit_allowance}")
+        if knot_rule is None:
+            knot_rule = KnotRule(max_spacing=float(max_dis_between_knots))
+        self.knot_rule: KnotRule | None = None if keep_knots else knot_rule
+        self.limit_allowance = float(limit_allowance)
+        self.path_report: PreparedPath | None = None
         self.policy, self.limits, self.dt, self.controller_dt, self.substeps = policy, limits, dt, controller_dt, k
         self.max_knots = int(max_knots)
         self.path_joints = np.arange(n) if path_joints is None else np.asarray(path_joints, np.int64)
@@ -271,13 +294,15 @@ class OnlineTracker:
         k = np.concatenate([here[None], k[1:] if np.linalg.norm(k[0] - here) <= START_TOLERANCE else k])
         if not np.any(np.linalg.norm(np.diff(k, axis=0), axis=-1) > S.DUPLICATE_DISTANCE):
             self._reject("set_path: the path must leave the current position (all knots coincide with it)")
+        report = self._prepare(k, "set_path")
         try:
-            path = S.make_path(k, self.max_knots)
+            path = S.make_path(report.knots, self.max_knots)
         except ValueError as e:  # more knots than max_knots
             self._reject(f"set_path: {e}")
         track = self._core.track._replace(path=path, n_knots=path.n_knots, s=jnp.zeros(()), s_start=jnp.zeros(()),
                                           braking=jnp.zeros((), bool))
         self._accept(track)
+        self.path_report = report
 
     def update_path(self, new_knots) -> None:
         """Replace the reference ahead of the current arc position by a spline through
@@ -287,6 +312,13 @@ class OnlineTracker:
         if not self._has_path:
             raise RuntimeError("update_path before set_path: there is no reference to adjust")
         k = self._checked_knots(new_knots, "update_path", min_count=1)
+        report = None
+        if self.knot_rule is not None:   # the curve replace_ahead builds from q(s), re-knotted
+            s = jnp.clip(self._core.track.s, 0.0, self.path.length)
+            here = np.asarray(S.point_at(self.path, s), np.float64)
+            tangent = np.asarray(S.tangent_at(self.path, s), np.float64)
+            report = self._prepare(np.concatenate([here[None], k]), "update_path", tangent)
+            k = report.knots[1:]
         if len(k) > self.max_knots - 2:
             self._reject(f"update_path: {len(k)} knots, at most max_knots - 2 = {self.max_knots - 2} fit")
         padded = np.concatenate([k, np.repeat(k[-1:], self.max_knots - len(k), 0)])
@@ -296,6 +328,7 @@ class OnlineTracker:
             self._reject(f"update_path: the new reference could not be built "
                          f"({int(count)} of {int(expected)} knots kept)")
         self._accept(track)
+        self.path_report = report
 
     # -- decision step ----------------------------------------------------------------------
 
@@ -355,12 +388,22 @@ class OnlineTracker:
         if bad.size:
             i, j = bad[0]
             self._reject(f"{where}: knot {i}, path joint {j} is {k[i, j]} (NaN/inf not allowed)")
-        bad = np.argwhere((k < self._lo) | (k > self._hi))
-        if bad.size:
-            i, j = bad[0]
-            self._reject(f"{where}: knot {i}, path joint {j} = {k[i, j]:.6g} is outside the position limits "
-                         f"[{self._lo[j]:.6g}, {self._hi[j]:.6g}] ({len(bad)} value(s) outside)")
+        try:
+            k, self._limit_shift = into_limits(k, SimpleNamespace(pos_min=self._lo, pos_max=self._hi),
+                                               self.limit_allowance, [f"path joint {j}" for j in range(self.n_path)],
+                                               where)
+        except DatasetError as e:
+            self._reject(str(e))
         return k
+
+    def _prepare(self, k: np.ndarray, where: str, start_slope=None) -> PreparedPath:
+        """The knots ``k`` (inside the limits) re-knotted by :attr:`knot_rule`, with the report."""
+        lim = SimpleNamespace(pos_min=self._lo, pos_max=self._hi)
+        try:
+            prepared = prepare_path(k, lim, self.knot_rule, name=where, start_slope=start_slope)
+        except DatasetError as e:
+            self._reject(str(e))
+        return dataclasses.replace(prepared, limit_shift=self._limit_shift)
 
     def _reject(self, message: str) -> NoReturn:
         """Brake from now on (the held reference and state stay as they were) and raise."""

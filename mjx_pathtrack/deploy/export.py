@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.fileio import atomic_write_bytes
 
 FORMAT_VERSION = 1
@@ -49,6 +50,18 @@ def env_settings(manifest: dict) -> dict:
     manifests' missing ones filled in; a setting left at its default is left out."""
     settings = {key: manifest.get(key, implied) for key, implied in MANIFEST_ENV_SETTINGS.items()}
     return {key: value for key, value in settings.items() if value is not None}
+
+
+def manifest_knot_rule(manifest: dict) -> KnotRule:
+    """The knot rule of the export's training paths (:class:`~mjx_pathtrack.core.knot_rule.KnotRule`):
+    the manifest's ``knot_rule``; a manifest written before it was recorded implies the papers'
+    curvature rule capped at its ``max_dis_between_knots``."""
+    if "knot_rule" in manifest:
+        try:
+            return KnotRule.from_json(manifest["knot_rule"])
+        except (TypeError, ValueError) as e:
+            raise ExportError(f"corrupt knot_rule in the manifest: {e}") from e
+    return KnotRule(max_spacing=float(manifest["max_dis_between_knots"]))
 
 
 def _finite_or_none(values) -> list:
@@ -106,6 +119,7 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
         "n_next": int(env.config.n_next),
         **{key: getattr(env.config, key) for key in MANIFEST_ENV_SETTINGS},
         "max_dis_between_knots": float(env.max_dis),
+        "knot_rule": env.knot_rule.to_json(),
         "limits": {"pos_min": _finite_or_none(lim.pos_min), "pos_max": _finite_or_none(lim.pos_max),
                    "vel": _finite_or_none(lim.vel), "acc": _finite_or_none(lim.acc),
                    "jerk": _finite_or_none(lim.jerk)},

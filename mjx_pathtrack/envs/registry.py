@@ -12,6 +12,7 @@ from typing import Callable
 
 import numpy as np
 
+from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.envs.executors import MjxExecutor
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 
@@ -28,16 +29,20 @@ def make_tracking(config, split: str = "train", root=None) -> PathTrackingEnv:
     robot = robots.load_robot(config.robot, dt=config.env.dt)
     meta = datasets.read_config(config.robot, config.dataset, root)
     paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
-    return tracking_env(robot, paths, float(meta["max_dis_between_knots"]), config.env_config(), config.executor)
+    return tracking_env(robot, paths, float(meta["max_dis_between_knots"]), config.env_config(), config.executor,
+                        KnotRule.of_dataset(meta))
 
 
-def tracking_env(robot, paths, max_dis: float, env_config, executor: str = "kinematic") -> PathTrackingEnv:
+def tracking_env(robot, paths, max_dis: float, env_config, executor: str = "kinematic",
+                 knot_rule: KnotRule | None = None) -> PathTrackingEnv:
     """Path tracking of a registry ``robot`` over ``paths`` (a stacked ``Path``) whose knots are
-    at most ``max_dis`` [rad] apart, with ``env_config`` and the ``executor`` (:data:`EXECUTORS`)."""
+    at most ``max_dis`` [rad] apart, with ``env_config`` and the ``executor`` (:data:`EXECUTORS`);
+    ``knot_rule``: the training paths' (default: the papers' curvature rule capped at ``max_dis``)."""
     if executor not in EXECUTORS:
         raise ValueError(f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
     return PathTrackingEnv(robot.limits, paths, max_dis, env_config, path_joints=np.flatnonzero(np.asarray(robot.path_mask)),
-                           home=robot.q0, executor=MjxExecutor(robot) if executor == "mjx" else None)
+                           home=robot.q0, executor=MjxExecutor(robot) if executor == "mjx" else None,
+                           knot_rule=knot_rule)
 
 
 def _ball_on_plate(config, split: str = "train", root=None):

@@ -33,6 +33,7 @@ from brax.envs.base import Env, State
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.envs.executors import KinematicExecutor
 
 Array = jax.Array
@@ -159,11 +160,15 @@ class PathTrackingEnv(Env):
     ``path_joints``: indices of the joints that form the path (default: all);
     ``home`` ``[n]``: start position of joints outside the path (default 0);
     ``executor``: :mod:`~mjx_pathtrack.envs.executors` object (default: kinematic with
-    ``config.substeps``), its sub-steps must match ``config.substeps``.
+    ``config.substeps``), its sub-steps must match ``config.substeps``;
+    ``knot_rule``: where the training paths have their knots
+    (:class:`~mjx_pathtrack.core.knot_rule.KnotRule`; default the papers' curvature rule capped at
+    ``max_dis_between_knots``): a user's path is re-knotted by it before the policy sees it.
     """
 
     def __init__(self, limits: L.JointLimits, paths: S.Path, max_dis_between_knots: float,
-                 config: EnvConfig = EnvConfig(), path_joints=None, home=None, executor=None):
+                 config: EnvConfig = EnvConfig(), path_joints=None, home=None, executor=None,
+                 knot_rule: KnotRule | None = None):
         n = limits.n_joints
         self.limits = limits
         self.config = config
@@ -178,6 +183,7 @@ class PathTrackingEnv(Env):
         if config.deviation_weights is not None and len(config.deviation_weights) != m:
             raise ValueError(f"deviation_weights has {len(config.deviation_weights)} values for {m} path joints")
         self.max_dis = float(max_dis_between_knots)
+        self.knot_rule = KnotRule(max_spacing=self.max_dis) if knot_rule is None else knot_rule
         self.home = jnp.zeros(n) if home is None else jnp.asarray(home, jnp.float32)
         self.n_paths = int(paths.knots.shape[0])
         self.executor = KinematicExecutor(config.substeps) if executor is None else executor

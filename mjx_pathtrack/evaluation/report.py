@@ -22,8 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.evaluation import baseline
-from mjx_pathtrack.paths import datasets
+from mjx_pathtrack.paths import datasets, ik
+from mjx_pathtrack.paths import user_paths as UP
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.evaluation import rollout as E
 from mjx_pathtrack.core import spline as S
@@ -52,6 +54,37 @@ class PolicySource:
     max_dis: float | None
     kind: str
     path: FsPath
+    knot_rule: KnotRule | None = None   # an export's (its manifest); None: the training dataset's
+
+    def training_knot_rule(self) -> KnotRule:
+        """Where the policy's training paths have their knots: the export's record, else the
+        training dataset's (``config.json``), else the papers' curvature rule at ``max_dis``."""
+        if self.knot_rule is not None:
+            return self.knot_rule
+        cfg = self.config
+        try:
+            return KnotRule.of_dataset(datasets.read_config(cfg.robot, cfg.dataset, cfg.dataset_root))
+        except datasets.DatasetError:
+            if self.max_dis is None:
+                raise
+            return KnotRule(max_spacing=self.max_dis)
+
+
+@dataclasses.dataclass
+class UserPaths:
+    """A user path file made ready for a policy (:mod:`mjx_pathtrack.paths.user_paths`): each
+    path checked, moved inside the limits and re-knotted by the policy's knot rule (``rule``;
+    None: knots kept as given). ``paths``: the stacked references the policy tracks; ``curves``:
+    the user's own curves (what the deviations are measured against); ``label``: the file name."""
+
+    prepared: list
+    rule: KnotRule | None
+    paths: S.Path
+    curves: list
+    label: str
+
+    def report_lines(self) -> list[str]:
+        return UP.report_lines(self.prepared, self.rule)
 
 
 def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | None = None) -> PolicySource:
@@ -88,8 +121,12 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
         else:
             config = TrainConfig.from_flat({"robot": man["robot"], "dt": float(man["dt"]), "n_next": int(man["n_next"]),
                                             **export.env_settings(man)})
+        try:
+            rule = export.manifest_knot_rule(man)
+        except export.ExportError as e:
+            raise EvaluationError(f"{root}: {e}") from e
         return PolicySource(lambda obs, key: exported.traced_call(obs), config, float(man["max_dis_between_knots"]),
-                            "export", root)
+                            "export", root, rule)
     config_file, params_file = root / "config.json", root / "params.pkl"
     if not config_file.is_file():
         raise EvaluationError(f"{root} is neither a run directory (config.json missing) nor an export "
@@ -170,20 +207,58 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic
     return policy
 
 
-def user_paths(file: str, robot: str) -> S.Path:
+def user_paths(file: str, robot: str, rule: KnotRule | None = None) -> S.Path:
     """Stacked paths of a user path file (``.npz``/``.json``/``.csv``, the datasets import format),
-    validated against the robot's path joints (:class:`~mjx_pathtrack.paths.datasets.DatasetError`)."""
+    checked against the robot's path joints and moved inside its limits, re-knotted by ``rule``
+    (None: as given) (:class:`~mjx_pathtrack.paths.datasets.DatasetError` names a bad path)."""
+    return load_user_paths(file, robot, rule, cartesian=False).paths
+
+
+def load_user_paths(file: str, robot: str, rule: KnotRule | None, cartesian: bool = True) -> UserPaths:
+    """:class:`UserPaths` of a path file for a registry ``robot``: every path checked (knots up to
+    the URDF limits accepted and moved onto the model's), re-knotted by ``rule`` (None: kept as
+    given) and the largest distance between the user's curve and the policy's measured, with
+    ``cartesian`` also between the target points' curves."""
     limits, names = datasets.robot_limits(robot)
-    knots = [datasets.validate_path(k, limits, names, name=f"{FsPath(file).name}: {name}")
-             for name, k in datasets.read_user_paths(file)]
-    return S.stack_fits(S.fit_spline(k) for k in knots)
+    fk = None
+    if cartesian:
+        loaded = robots.load_robot(robot)
+        pj = np.flatnonzero(np.asarray(loaded.path_mask))
+        home = np.asarray(loaded.q0, np.float64)
+
+        def target_points(q, chunk=4096):   # fixed-size calls: one compilation for every path
+            full = np.broadcast_to(home, q.shape[:-1] + home.shape).copy()
+            full[..., pj] = q
+            parts = []
+            for i in range(0, len(full), chunk):
+                part = full[i:i + chunk]
+                padded = np.concatenate([part, np.repeat(part[-1:], chunk - len(part), 0)])
+                parts.append(ik.target_positions(loaded, padded)[:len(part)])
+            return np.concatenate(parts)
+        fk = target_points
+    prepared = UP.prepare_paths(datasets.read_user_paths(file), limits, rule, names,
+                                allowance=robots.POS_BUFFER, fk=fk, prefix=f"{FsPath(file).name}: ")
+    paths = S.stack_fits(S.fit_spline(p.knots) for p in prepared)
+    return UserPaths(prepared, rule, paths, [S.fit_spline(p.given) for p in prepared], FsPath(file).name)
 
 
-def build_env(source: PolicySource, paths_file: str | None = None, split: str = "test",
+def check_level_plate(user: UserPaths, dt: float = 0.1) -> None:
+    """Every path the ball policy would track (re-knotted) keeps the plate level
+    (:func:`~mjx_pathtrack.paths.ball.check_level`; a :class:`~mjx_pathtrack.paths.datasets.DatasetError`
+    names path, knot and tilt)."""
+    from mjx_pathtrack.paths.ball import PlateKinematics, check_level
+
+    kin = PlateKinematics(robots.load_robot("iiwa_ball", dt=dt))
+    for p in user.prepared:
+        check_level(kin, p.knots, name=p.name)
+
+
+def build_env(source: PolicySource, paths_file: "str | UserPaths | None" = None, split: str = "test",
               full_paths: bool = False, floating_base: bool = False) -> tuple[PathTrackingEnv, robots.Robot, str]:
     """The evaluation environment: the training config's (termination, weights, executor), the
-    training dataset's observation scale, on ``split`` of the training dataset or on the paths of
-    ``paths_file``; ``full_paths`` evaluates whole paths instead of random sub-paths;
+    training dataset's observation scale, on ``split`` of the training dataset or on user paths
+    (``paths_file``: a file, re-knotted by the policy's rule, or :func:`load_user_paths`' result);
+    ``full_paths`` evaluates whole paths instead of random sub-paths;
     ``floating_base``: a plain ARMAR-4 tracking run standing on the floor, legs fixed, MJX physics
     (:func:`~mjx_pathtrack.envs.tasks.humanoid_balance.floating_base_config`)."""
     cfg = source.config
@@ -198,14 +273,19 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
     if cfg.task == "ball_on_plate":  # whole paths, ball always simulated; episodes end when it falls
         from mjx_pathtrack.envs.tasks.ball_on_plate import make_task_env
 
-        if paths_file is not None:
-            raise EvaluationError("--paths is not supported for the ball_on_plate task (level-plate paths only)")
-        return make_task_env(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
+        if paths_file is None:
+            return make_task_env(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
+        if not isinstance(paths_file, UserPaths):
+            paths_file = load_user_paths(paths_file, cfg.robot, source.training_knot_rule(), cartesian=False)
+        check_level_plate(paths_file, cfg.env.dt)
+        return make_task_env(cfg, split, evaluation=True, paths=paths_file.paths), robot, paths_file.label
     max_dis = source.max_dis
     if max_dis is None:
         max_dis = float(datasets.read_config(cfg.robot, cfg.dataset, cfg.dataset_root)["max_dis_between_knots"])
     if paths_file is not None:
-        paths, label = user_paths(paths_file, cfg.robot), FsPath(paths_file).name
+        if not isinstance(paths_file, UserPaths):
+            paths_file = load_user_paths(paths_file, cfg.robot, source.training_knot_rule(), cartesian=False)
+        paths, label = paths_file.paths, paths_file.label
     else:
         paths, label = datasets.load_paths(cfg.robot, cfg.dataset, split, root=cfg.dataset_root), \
             f"{cfg.robot}/{cfg.dataset}/{split}"
@@ -218,16 +298,19 @@ def build_env(source: PolicySource, paths_file: str | None = None, split: str = 
         env = humanoid_balance.make_env(cfg, split, paths=paths, max_dis=max_dis, env_config=env_cfg,
                                         base_sensor=not floating_base)
         return env, humanoid_balance.eval_robot(cfg), label
-    return registry.tracking_env(robot, paths, max_dis, env_cfg, cfg.executor), robot, label
+    return registry.tracking_env(robot, paths, max_dis, env_cfg, cfg.executor, source.training_knot_rule()), \
+        robot, label
 
 
 def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes: int | None = None, seed: int = 0,
                    batch: int = 256, timing_decisions: int = 200, topp: bool = True, topp3: bool = False,
-                   topp3_cache=None, workers: int = 2) -> tuple[dict, dict, E.Rollout]:
+                   topp3_cache=None, workers: int = 2, measure: list | None = None) -> tuple[dict, dict, E.Rollout]:
     """Evaluate: ``episodes`` (default: one per path) on paths ``i mod n_paths`` in batches of
     ``batch`` (the last padded, so one compile), sub-paths from ``PRNGKey(seed)``. ``topp``: the
     TOPP-RA baseline; ``topp3``: also the jerk-limited optimum (TOPP3, ~1 s per path on
-    ``workers`` processes, reused from the JSON file ``topp3_cache``). Returns ``(summary,
+    ``workers`` processes, reused from the JSON file ``topp3_cache``); ``measure``: per dataset
+    path the curve the deviations are measured against (:attr:`UserPaths.curves`; default the
+    environment's references). Returns ``(summary,
     per-episode table, rollout of the first batch)``."""
     n = env.n_paths if episodes is None else int(episodes)
     if n < 1:
@@ -240,7 +323,7 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         chunk = indices[start:start + size]
         padded = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk))])
         ro = E.rollout(env, policy, jax.random.fold_in(key, i), padded)
-        table = {k: v[:len(chunk)] for k, v in E.episode_table(env, ro, robot).items()}
+        table = {k: v[:len(chunk)] for k, v in E.episode_table(env, ro, robot, measure=measure).items()}
         if topp:
             pj = np.asarray(env.path_joints)
             lim = env.limits

@@ -309,7 +309,7 @@ def rotation_angle(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
 
 
 def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float = SAMPLE_SPACING,
-                  fk_chunk: int = 8192) -> dict[str, np.ndarray]:
+                  fk_chunk: int = 8192, measure: list | None = None) -> dict[str, np.ndarray]:
     """Per-episode metrics ``{name: [B]}`` of a :class:`Rollout` (docs/method.md §6).
 
     Durations [s] (``stop_time_s``: robot stopped after reaching the end, ``end_time_s``: end first
@@ -321,6 +321,11 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
     deviation [cm] (:func:`contour_deviation`: distance from the reference's Cartesian curve,
     whatever the arc position); end reached, success,
     termination reason; limit audit ``max_{pos,vel,acc,jerk}_ratio``.
+
+    ``measure``: per dataset path a :class:`~mjx_pathtrack.core.spline_fit.SplineFit`, the curve
+    the deviations are measured against instead of the environment's reference (a user's own
+    curve, which the policy tracks re-knotted: :mod:`mjx_pathtrack.paths.user_paths`); arc
+    positions on the reference map onto it in proportion to the two curves' lengths.
     """
     pj = np.asarray(env.path_joints)
     m = ro.metrics
@@ -328,7 +333,10 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
     offsets, samples = zip(*(sample_executed(executed_polyline(ro, b), pj, spacing) for b in range(B)))
     off, mask = _pad(list(offsets), 0.0)
     exe, _ = _pad(list(samples), 0.0)
-    ref = np.asarray(reference_points(ro.paths, jnp.asarray(ro.s_start[:, None] + off, jnp.float32)), np.float64)
+    if measure is None:
+        ref = np.asarray(reference_points(ro.paths, jnp.asarray(ro.s_start[:, None] + off, jnp.float32)), np.float64)
+    else:
+        ref = measured_points(env, ro, measure, off, start_offset=True)
     dev = np.linalg.norm(ref - exe[..., pj], axis=-1)
     last = mask.sum(1) - 1
     out: dict[str, np.ndarray] = {
@@ -346,7 +354,7 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
         ref_full = exe.copy()
         ref_full[..., :] = np.asarray(env.home)
         ref_full[..., pj] = ref
-        curves, counts = reference_curves(env, ro, spacing)
+        curves, counts = reference_curves(env, ro, spacing, measure)
         k = int(mask.sum())  # valid samples; FK of the reference there, the executed ones, the curves
         pos, rot = _fk_chunked(robot, np.concatenate([ref_full[mask], exe[mask], curves.reshape(-1, curves.shape[-1])]),
                                fk_chunk)
@@ -379,26 +387,74 @@ def polyline_distance(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
     points, curve = np.asarray(points, np.float64), np.asarray(curve, np.float64)
     if len(curve) == 1:
         return np.linalg.norm(points - curve[0], axis=-1)
-    a, ab = curve[:-1], np.diff(curve, axis=0)  # [R-1, d]
-    length2 = np.maximum(np.einsum("rd,rd->r", ab, ab), 1e-30)
-    t = np.clip(np.einsum("mrd,rd->mr", points[:, None] - a[None], ab) / length2, 0.0, 1.0)
-    nearest = a[None] + t[..., None] * ab[None]  # [M, R-1, d]
-    return np.linalg.norm(points[:, None] - nearest, axis=-1).min(axis=1)
+    if len(curve) <= 64:
+        return _segment_distance(points, curve, np.arange(len(curve) - 1)[None])
+    # exact with a KD-tree: a segment whose endpoints are both further than d + L/2 (L: the
+    # longest segment) cannot be nearer than a distance d already found; the segments next to the
+    # k nearest vertices are checked, and every point whose k-th vertex is not that far is
+    # checked against all segments
+    from scipy.spatial import cKDTree
+
+    k = min(16, len(curve))
+    dist, idx = cKDTree(curve).query(points, k=k)
+    seg = np.concatenate([np.clip(idx - 1, 0, len(curve) - 2), np.clip(idx, 0, len(curve) - 2)], axis=1)
+    best = _segment_distance(points, curve, seg)
+    half = 0.5 * np.linalg.norm(np.diff(curve, axis=0), axis=-1).max()
+    unsure = dist[:, -1] <= best + half
+    if unsure.any():
+        best[unsure] = _segment_distance(points[unsure], curve, np.arange(len(curve) - 1)[None])
+    return best
 
 
-def reference_curves(env: PathTrackingEnv, ro: Rollout, spacing: float = SAMPLE_SPACING
+def _segment_distance(points: np.ndarray, curve: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Distance ``[M]`` from each of ``points [M, d]`` to the nearest of the polyline segments
+    ``segments [M or 1, S]`` (indices ``i``: from ``curve[i]`` to ``curve[i + 1]``), in chunks."""
+    out = np.empty(len(points))
+    chunk = max(1, 2_000_000 // max(segments.shape[1], 1))
+    for i in range(0, len(points), chunk):
+        p = points[i:i + chunk]
+        sg = segments if segments.shape[0] == 1 else segments[i:i + chunk]
+        a, ab = curve[sg], curve[sg + 1] - curve[sg]                       # [m, S, d]
+        length2 = np.maximum(np.einsum("msd,msd->ms", ab, ab), 1e-30)
+        t = np.clip(np.einsum("msd,msd->ms", p[:, None] - a, ab) / length2, 0.0, 1.0)
+        out[i:i + chunk] = np.linalg.norm(p[:, None] - (a + t[..., None] * ab), axis=-1).min(axis=1)
+    return out
+
+
+def measured_points(env: PathTrackingEnv, ro: Rollout, measure: list, s: np.ndarray,
+                    start_offset: bool) -> np.ndarray:
+    """Points ``[B, M, m]`` of the curves ``measure`` (one fit per dataset path) for the episodes
+    of ``ro`` at arc positions ``s [B, M]`` given on the episode's reference (from its start if
+    ``start_offset``, else absolute), mapped in proportion to the lengths of the reference and the
+    measured curve, clamped to the sub-path's end (float64)."""
+    full = np.asarray(env.paths.length, np.float64)[ro.path_index]
+    out = np.empty(s.shape + (len(env.path_joints),))
+    for b, index in enumerate(ro.path_index):
+        fit = measure[int(index)]
+        scale = fit.length / max(full[b], 1e-12)
+        start = scale * ro.s_start[b] if start_offset else 0.0
+        end = scale * float(np.asarray(ro.paths.length)[b])
+        out[b] = fit.point_at(np.clip(start + (s[b] if start_offset else scale * s[b]), 0.0, end))
+    return out
+
+
+def reference_curves(env: PathTrackingEnv, ro: Rollout, spacing: float = SAMPLE_SPACING, measure: list | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Each episode's reference from its start ``s_start`` to its end, sampled every ``spacing``
     rad of arc length, both ends included, as full joint configurations (the joints off the path
     at ``env.home``): ``(curves [B, W, n], counts [B])``, episode ``b``'s samples being
-    ``curves[b, :counts[b]]`` (the rest repeat its end)."""
+    ``curves[b, :counts[b]]`` (the rest repeat its end). ``measure``: the curves to sample instead
+    of the references (:func:`measured_points`)."""
     pj = np.asarray(env.path_joints)
     s0 = np.asarray(ro.s_start, np.float64)
     end = np.maximum(np.asarray(ro.paths.length, np.float64), s0)
     counts = np.floor((end - s0) / spacing + 1e-9).astype(int) + 2
     k = np.arange(int(counts.max()))[None]
     s = np.where(k >= counts[:, None] - 1, end[:, None], np.minimum(s0[:, None] + spacing * k, end[:, None]))
-    ref = np.asarray(reference_points(ro.paths, jnp.asarray(s, jnp.float32)), np.float64)
+    if measure is None:
+        ref = np.asarray(reference_points(ro.paths, jnp.asarray(s, jnp.float32)), np.float64)
+    else:
+        ref = measured_points(env, ro, measure, s, start_offset=False)
     curves = np.broadcast_to(np.asarray(env.home, np.float64), ref.shape[:2] + (len(env.home),)).copy()
     curves[..., pj] = ref
     return curves, counts

@@ -153,6 +153,25 @@ def path_tilt_deg(kin: PlateKinematics, knots: np.ndarray, spacing: float = 0.01
     return kin.tilt_deg(fit.point_at(s))
 
 
+def check_level(kin: PlateKinematics, knots: np.ndarray, max_tilt_deg: float = BallPathConfig.max_tilt_deg,
+                name: str = "path", spacing: float = 0.01) -> float:
+    """The largest plate tilt [deg] along the spline through ``knots [K, 7]`` (every ``spacing``
+    rad); a tilt above ``max_tilt_deg`` raises :class:`~mjx_pathtrack.paths.datasets.DatasetError`
+    naming the path, the knot nearest the worst point and the tilt (a ball path must keep the
+    plate level, docs/paths.md §5)."""
+    from mjx_pathtrack.paths.datasets import DatasetError
+
+    fit = spline.fit_spline(knots)
+    s = np.append(np.arange(0.0, fit.length, spacing), fit.length)
+    tilt = kin.tilt_deg(fit.point_at(s))
+    worst = int(np.argmax(tilt))
+    if tilt[worst] > max_tilt_deg:
+        knot = int(np.argmin(np.abs(fit.knot_s - s[worst])))
+        raise DatasetError(f"{name}: the plate tilts {tilt[worst]:.2f} deg near knot {knot} (arc {s[worst]:.3f} rad; "
+                           f"a ball path keeps it level within {max_tilt_deg:g} deg)")
+    return float(tilt[worst])
+
+
 def ball_paths(robot, n_paths: int, seed: int, cfg: BallPathConfig = BallPathConfig()) -> tuple[list[np.ndarray], dict]:
     """``n_paths`` knot arrays ``[K_i, 7]`` (deterministic for ``seed``) and generation counts."""
     rng = np.random.default_rng(seed)

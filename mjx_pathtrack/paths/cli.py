@@ -31,6 +31,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_imp.add_argument("--split", default="test", choices=SPLITS)
     p_imp.add_argument("--root", default=None)
     p_imp.add_argument("--overwrite", action="store_true")
+    p_imp.add_argument("--knot-rule-of", default="mixed", metavar="KIND",
+                       help="re-knot the paths by the knot rule of this dataset of the robot (the training data of "
+                            "the policy that will track them; default mixed, the iiwa's; another robot's default "
+                            "is random)")
+    p_imp.add_argument("--keep-knots", action="store_true", help="store the knots as given (no re-knotting)")
     p_gen = sub.add_parser("generate", help="generate a dataset (kinds: see generate.KINDS, e.g. random, target_point)")
     p_gen.add_argument("--robot", default="iiwa", choices=known_robots())
     p_gen.add_argument("--kind", default="random")
@@ -54,9 +59,24 @@ def main(argv: Sequence[str] | None = None) -> int:
             for name, st in table.items():
                 print(st.line(name))
         else:
+            from mjx_pathtrack.core.knot_rule import KnotRule
+            from mjx_pathtrack.paths.datasets import known_kinds, read_config
+            from mjx_pathtrack.robots.registry import POS_BUFFER
+
+            rule = None
+            if not args.keep_knots:
+                rule_kind = args.knot_rule_of
+                if rule_kind == "mixed" and "mixed" not in known_kinds(args.robot):
+                    rule_kind = "random"
+                rule = KnotRule.of_dataset(read_config(args.robot, rule_kind))
             directory = import_paths(args.file, args.robot, args.kind, args.split, args.root,
-                                     overwrite=args.overwrite)
-            print(f"imported into {directory}")
+                                     overwrite=args.overwrite, rule=rule, allowance=POS_BUFFER)
+            source = read_config(args.robot, args.kind, args.root)["source"][args.split]
+            print(f"imported into {directory}" + ("" if rule is None else
+                  f" (re-knotted by the rule of {args.robot}/{rule_kind}: largest distance from your curve "
+                  f"{source['curve_distance_rad_max']:.4f} rad)")
+                  + (f"; knots moved into the limits by up to {source['limit_shift_rad_max']:.4f} rad"
+                     if source["limit_shift_rad_max"] > 0 else ""))
             print(split_stats(load_split(args.robot, args.kind, args.split, args.root))
                   .line(f"{args.robot}/{args.kind}/{args.split}"))
     except DatasetError as e:

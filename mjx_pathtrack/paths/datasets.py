@@ -322,13 +322,19 @@ def _csv_paths(file: FsPath) -> list[tuple[str, np.ndarray]]:
 
 def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "test", root=None,
                  limits: JointLimits | None = None, joint_names: Sequence[str] | None = None,
-                 overwrite: bool = False) -> FsPath:
+                 overwrite: bool = False, rule=None, allowance: float = 0.0) -> FsPath:
     """Validate user paths and write them as ``<root>/<robot>/<kind>/<split>.npz``.
 
-    ``limits``/``joint_names`` default to :func:`robot_limits`. Updates ``config.json`` (counts,
-    ``max_dis_between_knots`` over all present splits). Refuses to replace an existing split
-    unless ``overwrite``. Returns the dataset directory.
+    ``limits``/``joint_names`` default to :func:`robot_limits`; knots up to ``allowance`` [rad]
+    beyond the limits are moved onto them; ``rule`` (a
+    :class:`~mjx_pathtrack.core.knot_rule.KnotRule`): the paths are re-knotted by it
+    (:mod:`mjx_pathtrack.paths.user_paths`; None: kept as given). Updates ``config.json`` (counts,
+    ``max_dis_between_knots`` over all present splits, the rule and the largest curve distance
+    and limit move per path under ``source``). Refuses to replace an existing split unless
+    ``overwrite``. Returns the dataset directory.
     """
+    from mjx_pathtrack.paths.user_paths import prepare_paths
+
     if split not in SPLITS:
         raise DatasetError(f"split must be one of {SPLITS}, got {split!r}")
     if limits is None:
@@ -338,8 +344,9 @@ def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "t
     target = directory / f"{split}.npz"
     if target.exists() and not overwrite:
         raise DatasetError(f"{target} exists (use overwrite=True / --overwrite to replace it)")
-    paths = [validate_path(k, limits, joint_names, name=f"{FsPath(file).name}: {name}")
-             for name, k in read_user_paths(file)]
+    prepared = prepare_paths(read_user_paths(file), limits, rule, joint_names, allowance=allowance,
+                             prefix=f"{FsPath(file).name}: ")
+    paths = [p.knots for p in prepared]
 
     cfg_file = directory / "config.json"
     config = json.loads(cfg_file.read_text()) if cfg_file.is_file() else {}
@@ -354,6 +361,9 @@ def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "t
         joint_names=list(joint_names) if joint_names is not None else config.get("joint_names"),
         max_dis_between_knots=max_dis_between_knots(splits.values()),
         **{f"num_{s}": len(splits.get(s, ())) for s in SPLITS})
-    config.setdefault("source", {})[split] = {"type": "import", "file": FsPath(file).name}
+    config.setdefault("source", {})[split] = {
+        "type": "import", "file": FsPath(file).name, "knot_rule": None if rule is None else rule.to_json(),
+        "curve_distance_rad_max": max(p.joint_distance for p in prepared),
+        "limit_shift_rad_max": max(p.limit_shift for p in prepared)}
     write_config(cfg_file, config)
     return directory

@@ -56,11 +56,12 @@ def random_policy(seed, kind="uniform"):
     return policy
 
 
-def tracker(policy, p0=None, controller_dt=1 / 200, max_knots=12, **kw):
-    """(Trackers with equal settings share one compilation.)"""
+def tracker(policy, p0=None, controller_dt=1 / 200, max_knots=12, keep_knots=True, **kw):
+    """(Trackers with equal settings share one compilation.) The knots as given by default: these
+    tests follow given knots through the reference; the re-knotting has tests of its own."""
     p0 = np.zeros(N) if p0 is None else p0
     return OnlineTracker(policy, p0, controller_dt=controller_dt, limits=LIM, dt=DT, n_next=N_NEXT,
-                         max_dis_between_knots=MAX_DIS, max_knots=max_knots, **kw)
+                         max_dis_between_knots=MAX_DIS, max_knots=max_knots, keep_knots=keep_knots, **kw)
 
 
 class Auditor:
@@ -221,7 +222,7 @@ def test_bad_path_mid_motion_errors_and_brakes_to_a_safe_stop(end_stop):
     held = (t.position, t.velocity, t.acceleration, t.s, jax.tree.map(np.asarray, t.path))
     bad_paths = {
         "NaN": np.full((3, N), np.nan),
-        "outside the position limits": np.full((3, N), 0.5) + np.eye(3, N) * 10.0,
+        "beyond the robot.s limits": np.full((3, N), 0.5) + np.eye(3, N) * 10.0,
         r"must be \[K, 7\]": np.zeros((3, 6)),
         "at most max_knots": np.zeros((11, N)) + np.linspace(0, 1, 11)[:, None],
         "numeric": [["a"] * N],
@@ -488,3 +489,44 @@ def test_readme_deploy_example_runs_as_written_on_the_longest_committed_test_pat
                 assert np.all(value >= np.asarray(lim.pos_min) - 1e-6) and np.all(value <= np.asarray(lim.pos_max) + 1e-6)
             else:
                 assert np.all(np.abs(value) <= np.asarray(bound) * (1 + 1e-5))
+
+
+def test_set_and_update_path_reknot_what_they_are_given():
+    """The tracker re-knots every path by its knot rule (here the papers' curvature rule capped at
+    MAX_DIS): planner-dense waypoints on a curve become knots like the curve's own, the report
+    says how far the two curves lie apart, an update continues the old path's direction, and the
+    robot follows it to the end within every limit."""
+    from mjx_pathtrack.core.knot_rule import KnotRule, reknot
+    from mjx_pathtrack.core.spline_fit import fit_spline
+
+    rule = KnotRule(max_spacing=MAX_DIS)
+    t = tracker(steering_policy, controller_dt=1 / 100, max_knots=128, keep_knots=False)
+    assert t.knot_rule == rule
+    audit = Auditor(t)
+    bend = np.array([[0.0] * N, [0.4, 0.3, -0.2, 0.5, 0.3, -0.4, 0.2], [0.9, 0.1, -0.5, 0.9, 0.6, -0.2, 0.7],
+                     [1.2, -0.4, -0.3, 1.1, 0.2, 0.3, 1.0]])
+    fit = fit_spline(bend)
+    dense = fit.point_at(np.append(np.arange(0.0, fit.length, 0.03), fit.length))
+    t.set_path(dense)
+    native = reknot(bend, rule)
+    n = int(t.path.n_knots)
+    assert len(dense) > 3 * n and abs(n - len(native)) <= 2
+    assert np.diff(np.asarray(t.path.knot_s)[:n]).max() <= MAX_DIS + 1e-5
+    report = t.path_report
+    assert report is not None and report.limit_shift == 0.0 and 0 < report.joint_distance < 0.02
+    for _ in range(8):
+        audit.step()
+    tangent = np.asarray(S.tangent_at(t.path, t.s))
+    detour = t.position + np.linspace(0.03, 0.9, 30)[:, None] * np.array([0.3, 0.5, 0.2, -0.4, 0.1, 0.3, -0.2])
+    t.update_path(detour)
+    assert t.path_report.knots.shape[0] < 20 and t.path_report.joint_distance < 0.02
+    np.testing.assert_allclose(np.asarray(S.tangent_at(t.path, t.s + 1e-4)), tangent, atol=2e-2)
+    end = audit.run_until_stopped()
+    assert end.reached_end
+    np.testing.assert_allclose(np.asarray(S.end_knot(t.path)), detour[-1], atol=1e-5)
+    # the limits' allowance: a knot on the URDF limit is moved onto the model's
+    t2 = tracker(steering_policy, controller_dt=1 / 100, max_knots=128, keep_knots=False)
+    edge = straight_path(np.zeros(N), np.asarray(LIM.pos_max) + 0.02, 5)[1:]
+    t2.set_path(edge)
+    assert t2.path_report.limit_shift == pytest.approx(0.02, abs=1e-6)
+    assert np.all(np.asarray(t2.path.knots) <= np.asarray(LIM.pos_max) + 1e-6)

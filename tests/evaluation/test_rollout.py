@@ -98,6 +98,17 @@ def test_overshoot_after_the_end_gives_the_known_deviations(lines, iiwa):
     assert t["cart_contour_dev_cm_final"][0] == pytest.approx(t["cart_pos_dev_cm_final"][0], rel=2e-3)
 
 
+def test_polyline_distance_with_a_kd_tree_is_exact():
+    """Long curves take the KD-tree route; it must give the brute-force answer to the last bit,
+    for points near the curve and far from it."""
+    rng = np.random.default_rng(0)
+    curve = np.cumsum(rng.normal(size=(3000, 3)) * 0.01, 0)
+    points = np.concatenate([curve[rng.integers(0, 3000, 300)] + rng.normal(size=(300, 3)) * 0.003,
+                             rng.normal(size=(50, 3))])
+    brute = E._segment_distance(points, curve, np.arange(len(curve) - 1)[None])
+    np.testing.assert_array_equal(E.polyline_distance(points, curve), brute)
+
+
 def test_polyline_distance_known_answers():
     """An L-shaped polyline (0,0) -> (1,0) -> (1,1): a point beside a segment, one at the corner's
     outside, one beyond the end, one on the curve; a one-point curve is that point."""
@@ -332,3 +343,48 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     assert "--end-tolerance must be a finite number >= 0" in err
     assert "no run or export directory" in err and "6 joint values" in err
     assert "--terminate-deviation must be > 0" in err
+
+
+def test_user_paths_are_reknotted_and_measured_against_the_users_curve(tiny_run, tmp_path, capsys):
+    """evaluate.py --paths: planner-dense waypoints of two committed test paths are re-knotted by
+    the run's knot rule (its dataset's), and the deviations are measured against the user's curve:
+    with the knots kept, the user's curve is the reference itself and both measures agree; re-knotted,
+    they differ by no more than the curves' reported distance (plus float32 arc rounding)."""
+    from mjx_pathtrack.core.spline_fit import fit_spline
+    from mjx_pathtrack.paths import datasets
+
+    run, _ = tiny_run
+    native = datasets.load_split("iiwa", "random", "test")[:2]
+    dense = {}
+    for i, k in enumerate(native):
+        fit = fit_spline(k)
+        dense[f"p{i}"] = fit.point_at(np.append(np.arange(0.0, fit.length, 0.03), fit.length))
+    file = tmp_path / "dense.npz"
+    np.savez(file, **dense)
+    source = R.load_policy_source(str(run))
+    rule = source.training_knot_rule()
+    assert rule.curvature_distance == 0.3 and rule.max_spacing == pytest.approx(
+        datasets.read_config("iiwa", "random")["max_dis_between_knots"])
+    user = R.load_user_paths(str(file), "iiwa", rule)
+    for p, k in zip(user.prepared, native):
+        assert abs(len(p.knots) - len(k)) <= 0.06 * len(k) and len(p.given) > 4 * len(k)
+        assert 0 < p.joint_distance < 0.05 and 0 < p.cartesian_distance < 0.05
+    assert any("re-knotted by the policy's knot rule" in line for line in user.report_lines())
+    env, robot, label = R.build_env(source, user, full_paths=True)
+    assert label == "dense.npz" and env.knot_rule == rule
+    kw = dict(episodes=2, timing_decisions=0, topp=False)
+    ours, _, _ = R.run_evaluation(env, source.policy, robot, **kw, measure=user.curves)
+    theirs, _, _ = R.run_evaluation(env, source.policy, robot, **kw)
+    gap = max(p.joint_distance for p in user.prepared)
+    assert abs(ours["joint_dev_mean"] - theirs["joint_dev_mean"]) <= gap + 1e-3
+    kept = R.load_user_paths(str(file), "iiwa", None, cartesian=False)
+    env_kept, _, _ = R.build_env(source, kept, full_paths=True)
+    a, _, _ = R.run_evaluation(env_kept, source.policy, robot, **kw, measure=kept.curves)
+    b, _, _ = R.run_evaluation(env_kept, source.policy, robot, **kw)
+    for key in ("joint_dev_mean", "joint_dev_max", "joint_dev_final", "cart_contour_dev_cm_mean"):
+        assert a[key] == pytest.approx(b[key], abs=2e-4), key
+    spec = importlib.util.spec_from_file_location("evaluate_cli", REPO / "evaluate.py")
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    assert cli.main([str(run), "--keep-knots"]) == 2
+    assert "--keep-knots applies to --paths only" in capsys.readouterr().err

@@ -63,3 +63,14 @@ def test_generation_is_deterministic_and_registered(tmp_path):
     assert not np.array_equal(other[0], other[1])
     with pytest.raises(datasets.DatasetError, match="iiwa only"):
         G.generate_ball_dataset("armar6", root=tmp_path / "c")
+
+
+def test_a_user_ball_path_is_checked_for_a_level_plate(kin, test_paths):
+    """A ball path from elsewhere is accepted when the plate stays level along it; a tilted one is
+    refused naming the path, the knot nearest the tilt and the tilt."""
+    level = test_paths[0]
+    assert G.check_level(kin, level, name="mine") <= G.BallPathConfig.max_tilt_deg
+    tilted = level.copy()
+    tilted[5, 5] += 0.2    # the wrist pitch at knot 5: the plate tips by ~11 deg there
+    with pytest.raises(datasets.DatasetError, match=r"^mine: the plate tilts 1\d\.\d\d deg near knot 5 "):
+        G.check_level(kin, tilted, name="mine")

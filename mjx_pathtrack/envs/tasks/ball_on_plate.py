@@ -47,6 +47,7 @@ from mujoco import mjx
 from mjx_pathtrack.robots import ball_scene as B
 from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.envs.executors import setpoints
 
@@ -287,9 +288,11 @@ PHYSICS = ("arm", "plate", "rolling")
 
 
 def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallConfig = BallConfig(),
-             reflections: bool = False, dt: float = 0.1, root=None, physics: str = "arm") -> BallOnPlateEnv:
-    """The task on ``splines/iiwa/ball_balancing/<split>``; ``reflections``: add the dataset's
-    reflected copies of every path (docs/paths.md §5, 4x augmentation); ``physics``: :data:`PHYSICS`."""
+             reflections: bool = False, dt: float = 0.1, root=None, physics: str = "arm",
+             paths: S.Path | None = None) -> BallOnPlateEnv:
+    """The task on ``splines/iiwa/ball_balancing/<split>`` (or on ``paths``, a stacked batch of
+    level-plate paths: a user's); ``reflections``: add the dataset's reflected copies of every
+    path (docs/paths.md §5, 4x augmentation); ``physics``: :data:`PHYSICS`."""
     if physics not in PHYSICS:
         raise ValueError(f"unknown ball physics {physics!r}; known: {', '.join(PHYSICS)}")
     from mjx_pathtrack.paths import datasets
@@ -298,10 +301,11 @@ def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallCo
 
     robot = robots.load_robot("iiwa_ball", dt=dt)
     meta = datasets.read_config(*DATASET, root)
-    knots = datasets.load_split(*DATASET, split, root)
-    if reflections:
-        knots = reflect_paths(knots, meta.get("reflection_vectors") or REFLECTION_VECTORS)
-    paths = S.stack_fits(S.fit_spline(k) for k in knots)
+    if paths is None:
+        knots = datasets.load_split(*DATASET, split, root)
+        if reflections:
+            knots = reflect_paths(knots, meta.get("reflection_vectors") or REFLECTION_VECTORS)
+        paths = S.stack_fits(S.fit_spline(k) for k in knots)
     cfg = env_config() if config is None else config
     if physics == "plate":
         from mjx_pathtrack.envs.tasks.plate_executor import PrescribedPlateExecutor
@@ -313,8 +317,10 @@ def make_env(split: str = "train", config: EnvConfig | None = None, ball: BallCo
         executor = RollingBallExecutor(robot)
     else:
         executor = BallExecutor(robot)
-    return BallOnPlateEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), cfg, executor, ball,
-                          home=robot.q0)
+    env = BallOnPlateEnv(robot.limits, paths, float(meta["max_dis_between_knots"]), cfg, executor, ball,
+                         home=robot.q0)
+    env.knot_rule = KnotRule.of_dataset(meta)
+    return env
 
 
 @dataclasses.dataclass(frozen=True)
@@ -345,14 +351,16 @@ PRESET = dict(task="ball_on_plate", robot="iiwa", dataset="ball_balancing", exec
               num_updates_per_batch=4, num_timesteps=16_000_000, num_evals=9, eval_episodes=128)
 
 
-def make_task_env(config, split: str = "train", root=None, evaluation: bool | None = None) -> BallOnPlateEnv:
+def make_task_env(config, split: str = "train", root=None, evaluation: bool | None = None,
+                  paths: S.Path | None = None) -> BallOnPlateEnv:
     """The task for a :class:`~mjx_pathtrack.config.run.TrainConfig` (``task='ball_on_plate'``).
 
     ``config.ball_on_plate.reward > 0``: R_ball with that weight, ball sensor observed, episode
     ends when the ball falls. ``reward == 0``: the papers' "no balancing reward" net -- trained on
     the same paths with the ball simulated but neither observed, rewarded nor ending the episode;
     ``evaluation`` (default: the test split) still ends episodes when it falls (the reported
-    failure). The train split gets the 4 reflections of every path (docs/paths.md §5)."""
+    failure). The train split gets the 4 reflections of every path (docs/paths.md §5). ``paths``:
+    level-plate paths (a user's, checked) instead of the split."""
     evaluation = split == "test" if evaluation is None else evaluation
     weight = float(config.ball_on_plate.reward)
     with_ball = weight > 0
@@ -361,5 +369,5 @@ def make_task_env(config, split: str = "train", root=None, evaluation: bool | No
     ball = BallConfig(reward=weight, sensor=with_ball, terminate=with_ball or evaluation,
                       cartesian=float(config.ball_on_plate.cartesian_reward))
     root = config.dataset_root if root is None else root
-    return make_env(split, env_cfg, ball, reflections=split == "train", dt=config.env.dt, root=root,
-                    physics=config.ball_on_plate.physics)
+    return make_env(split, env_cfg, ball, reflections=split == "train" and paths is None, dt=config.env.dt, root=root,
+                    physics=config.ball_on_plate.physics, paths=paths)

@@ -52,6 +52,7 @@ from mujoco import mjx
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.core import spline as S
+from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.envs.action_prior import HoldPrior
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
 from mjx_pathtrack.envs.executors import MjxExecutor
@@ -358,11 +359,17 @@ def make_env(config, split: str = "train", paths: S.Path | None = None, max_dis:
             raise ValueError(f"dataset {config.robot}/{config.dataset} joints {meta['joint_names']} differ from "
                              f"ARMAR-4's upper body {upper}")
         max_dis = float(meta["max_dis_between_knots"])
+        knot_rule = KnotRule.of_dataset(meta)
+    else:
+        knot_rule = None   # the caller's scale: the papers' curvature rule capped at it
     if paths is None:
         paths = datasets.load_paths(config.robot, config.dataset, split, root=root)
     env_config = config.env_config() if env_config is None else env_config
-    return HumanoidBalanceEnv(robot, paths, max_dis, env_config,
-                              BalanceOptions(legs=config.balance.legs, base_sensor=base_sensor))
+    env = HumanoidBalanceEnv(robot, paths, max_dis, env_config,
+                             BalanceOptions(legs=config.balance.legs, base_sensor=base_sensor))
+    if knot_rule is not None:
+        env.knot_rule = knot_rule
+    return env
 
 
 def floating_base_config(config):
