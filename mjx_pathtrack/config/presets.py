@@ -16,6 +16,9 @@ from mjx_pathtrack.config.run import TASKS
 
 #: the papers' settings (docs/method.md §2.4, §3, docs/training.md §1) for a robot
 ROBOT_PRESETS = {
+    # the iiwa trains on paths that cover what users bring: random and smooth target-point paths,
+    # knots at most 0.3 rad apart (docs/paths.md §5, §6; docs/results.md "Any path a user brings")
+    "iiwa": dict(dataset="mixed"),
     # + this package's budget for ARMAR-6: 60 regenerated train paths (the 5 committed ones
     # overfit: 76 % end reached on the test paths after 9.6 M steps) and 24 M steps (~21 min on 2
     # cores): 99.0 % end reached, 0.111 rad (docs/results.md "ARMAR-6 with the recipe")
@@ -46,6 +49,8 @@ ROBOT_RECIPES = {
     # 1.129x TOPP-RA, 0.089 / 0.064 rad after 22 min of training on 2 CPU cores (alpha 3 on the
     # 200, papers' stop: 97.5 %, 1.108x, 0.090 / 0.111 rad; docs/results.md "Learning recipe")
     ("paper", "iiwa", "random"): dict(alpha=2.0, num_train_paths=1000),
+    # the same on the mixed paths, on the 400 committed train paths
+    ("paper", "iiwa", "mixed"): dict(alpha=2.0),
 }
 
 

@@ -117,6 +117,54 @@ def _target_point_split(robot, count: int, seed: int, steps: int = 190, dt: floa
     return result.paths, source
 
 
+def _smooth_target_point_split(robot, count: int, seed: int, steps: int = 170, dt: float = 0.1):
+    """``smooth_target_point`` kind (:func:`mjx_pathtrack.paths.target.smooth_target_point_paths`):
+    through random reachable targets without stopping, like the papers' reaching recordings."""
+    from mjx_pathtrack.paths import target as generate_target
+    from mjx_pathtrack.robots.collision import in_collision
+
+    result = generate_target.smooth_target_point_paths(
+        robot, count, seed, steps=steps, dt=dt, in_collision=lambda q: in_collision(robot, q),
+        path_joints=np.flatnonzero(np.asarray(robot.path_mask)))
+    source = {"type": "smooth_target_point", "seed": seed, "steps": steps, "dt": dt, "substeps": 24,
+              "generator": "target.smooth_target_point_paths (defaults: 60 targets near the previous, "
+                           "switch 0.3-0.8 rad, speed 0.5-1.0 of the limits, response 0.4 s)",
+              "resampling_distance": 0.1, "curvature_sampling_distance": 0.3,
+              "collision_check": "robots.in_collision on every 4th setpoint; a motion is cut before a collision"}
+    return result.paths, source
+
+
+def _mixed_split(robot, count: int, seed: int, dt: float = 0.1, max_spacing: float = 0.3,
+                 target_share: float = 0.5):
+    """``mixed`` kind: the training distribution of the default policies: random-agent paths
+    (:func:`_random_split`) and smooth target-point paths (:func:`_smooth_target_point_split`),
+    ``target_share`` of them target-point, interleaved, every knot interval longer than
+    ``max_spacing`` [rad] split (:func:`~mjx_pathtrack.core.knot_rule.cap_spacing`). Knots dense
+    in bends (curvature rule) and never sparser than ``max_spacing`` on smooth stretches: a
+    low-curvature curve (a user's smooth motion) then shows the policy knots like any other curve
+    instead of a few far apart, which the uncapped rule gives it and no training path has
+    (docs/results.md "Any path a user brings")."""
+    from mjx_pathtrack.core.knot_rule import KnotRule, SPACING_SAFETY, cap_spacing
+
+    n_target = int(round(target_share * count))
+    random, random_source = _random_split(robot, count - n_target, seed, dt=dt) if count > n_target else ([], {})
+    target, target_source = _smooth_target_point_split(robot, n_target, seed, dt=dt) if n_target else ([], {})
+    paths = []
+    for i in range(max(len(random), len(target))):
+        paths += [p for p in (random[i:i + 1] + target[i:i + 1])]
+    capped = []
+    for p in paths:
+        fit = spline.fit_spline(p)
+        if np.diff(fit.knot_s).max() > max_spacing:
+            p = spline.fit_spline(p).point_at(cap_spacing(fit.knot_s, SPACING_SAFETY * max_spacing))
+        capped.append(p)
+    source = {"type": "mixed", "seed": seed, "dt": dt, "max_spacing": max_spacing, "target_share": target_share,
+              "parts": {"random": random_source, "smooth_target_point": target_source},
+              "knot_rule": KnotRule(0.1, 0.3, max_spacing).to_json(),
+              "resampling_distance": 0.1, "curvature_sampling_distance": 0.3}
+    return capped, source
+
+
 def _ball_balancing_split(robot, count: int, seed: int, dt: float = 0.1):
     """``ball_balancing`` kind (:mod:`mjx_pathtrack.paths.ball`): level-plate paths of the
     iiwa; the plate kinematics come from ``iiwa_ball`` whatever the registry robot."""
@@ -137,6 +185,7 @@ RANDOM_AGENT = {"armar6": "chunked", "armar4": "chunked", "armar4_legs": "chunke
 #: paths are knot arrays ``[K_i, path joints]``; ``source`` is stored in config.json and must hold
 #: ``seed`` and the params needed to regenerate (:func:`generate_split`).
 KINDS: dict[str, Callable] = {"random": _random_split, "target_point": _target_point_split,
+                              "smooth_target_point": _smooth_target_point_split, "mixed": _mixed_split,
                               "ball_balancing": _ball_balancing_split}
 
 

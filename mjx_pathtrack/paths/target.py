@@ -67,7 +67,7 @@ RESPONSE = 0.2
 
 def goal_seeking_acceleration(limits: L.JointLimits, p: Array, v: Array, a: Array, goal: Array, dt,
                               brake_fraction: float = BRAKE_FRACTION, tau: float = TAU,
-                              response: float = RESPONSE) -> Array:
+                              response: float = RESPONSE, speed=1.0) -> Array:
     """Next acceleration ``[..., n]`` that drives each joint to ``goal [..., n]`` (rad) at rest.
 
     "Accelerate towards the goal unless braking is needed": the wanted velocity is
@@ -77,10 +77,11 @@ def goal_seeking_acceleration(limits: L.JointLimits, p: Array, v: Array, a: Arra
     overshoot); the wanted acceleration ``(v_wanted - v) / response`` is turned into an action in
     [-1, 1] of the real safe range of ``(p, v, a)`` and mapped back
     (:func:`limits.action_to_acceleration`), so every step is a safe-action-space step.
+    ``speed`` (broadcastable to ``[..., n]``): the wanted speed's cap as a fraction of ``V``.
     """
     a_min, a_max = L.safe_acceleration_range(limits, p, v, a, dt)
     d = goal - p - v * dt   # distance left after this step (the acceleration only ramps within it)
-    speed = jnp.minimum(jnp.minimum(limits.vel, jnp.sqrt(2.0 * brake_fraction * limits.acc * jnp.abs(d))),
+    speed = jnp.minimum(jnp.minimum(speed * limits.vel, jnp.sqrt(2.0 * brake_fraction * limits.acc * jnp.abs(d))),
                         jnp.abs(d) / tau)
     wanted = jnp.clip((jnp.sign(d) * speed - v) / response, -limits.acc, limits.acc)
     width = a_max - a_min
@@ -327,3 +328,118 @@ def _resample(motions, path_joints, distance, curvature_distance, limits) -> lis
     lo, hi = np.asarray(limits.pos_min, np.float64)[cols], np.asarray(limits.pos_max, np.float64)[cols]
     return [np.clip(spline.resample(m[:, cols], distance=distance, curvature_distance=curvature_distance), lo, hi)
             for m in motions]
+
+
+# ---------------------------------------------------------------------------------------------
+# Smooth target point: through the targets without stopping
+# ---------------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnums=(3, 4, 5, 8))
+def through_goals(limits: L.JointLimits, p0: Array, goals: Array, steps: int, dt: float, substeps: int,
+                  switch: Array, speed: Array, response: float = RESPONSE):
+    """Goal-seeking motions from rest at ``p0 [B, n]`` through the joint goals ``goals [B, G, n]``
+    in order without stopping: the controller (:func:`goal_seeking_acceleration`) heads for the
+    current goal and moves on to the next as soon as every joint is within ``switch [B]`` rad of
+    it (the last goal is approached to rest); ``speed [B]``: the wanted speed as a fraction of the
+    velocity limits; ``response`` [s]: the controller's velocity response time (longer: rounder
+    turns). Returns ``(q [B, steps*substeps + 1, n]``
+    setpoints, ``passed [B, steps]`` int: goals passed after each decision step)."""
+    zero = jnp.zeros_like(p0)
+    n_goals = goals.shape[1]
+
+    def body(state, _):
+        p, v, a, g = state
+        goal = jnp.take_along_axis(goals, jnp.minimum(g, n_goals - 1)[:, None, None], axis=1)[:, 0]
+        a1 = goal_seeking_acceleration(limits, p, v, a, goal, dt, response=response, speed=speed[:, None])
+        q, (p1, v1, a1) = _step(limits, p, v, a, a1, dt, substeps)
+        near = jnp.max(jnp.abs(goal - p1), axis=-1) <= switch
+        g = jnp.where(near & (g < n_goals - 1), g + 1, g)
+        return (p1, v1, a1, g), (q, g)
+
+    _, (q, passed) = jax.lax.scan(body, (p0, zero, zero, jnp.zeros(p0.shape[0], jnp.int32)), None, length=steps)
+    q = jnp.moveaxis(q, 0, 1).reshape(p0.shape[0], steps * substeps, -1)
+    return jnp.concatenate([p0[:, None], q], axis=1), passed.T
+
+
+def _goal_chain(robot, seed: int, n: int, n_goals: int, start: np.ndarray, lo, hi, in_collision, ik_seeds: int,
+                spread: float | None = None):
+    """``[n, n_goals + 1, joints]``: the start and ``n_goals`` joint goals per path, each the IK
+    solution (nearest of several seeds to the previous goal) of a random reachable Cartesian
+    target: the tool point of a uniformly random configuration, or with ``spread`` [rad] of the
+    previous goal moved by a normal step of that standard deviation per joint (nearer targets);
+    a goal in self-collision or not reached is replaced by the previous one."""
+    chain = [start.copy()]
+    for g in range(n_goals):
+        keys = jax.vmap(lambda k: jax.random.split(k, 2 + ik_seeds))(_path_keys(seed, n, 20_000 + g))
+        sample_q = _uniform_configs(keys[:, 0], lo, hi)
+        if spread is not None:
+            step = np.asarray(jax.vmap(lambda k: jax.random.normal(k, lo.shape))(keys[:, 0]), np.float64)
+            sample_q = np.clip(chain[-1] + spread * step, lo, hi)
+        target = ik.target_positions(robot, sample_q)
+        prev = chain[-1]
+        seeds = [prev] + [_uniform_configs(keys[:, 1 + s], lo, hi) for s in range(ik_seeds)] + [sample_q]
+        sol = ik.solve_ik(robot, np.stack([target] * len(seeds), 1), np.stack(seeds, 1))
+        q_sol, ok = np.asarray(sol.q, np.float64), np.asarray(sol.converged)
+        dist = np.where(ok, np.linalg.norm(q_sol - prev[:, None], axis=-1), np.inf)
+        goal = q_sol[np.arange(n), np.argmin(dist, axis=1)]
+        valid = np.isfinite(dist.min(axis=1))
+        if in_collision is not None:
+            valid &= ~np.asarray(in_collision(goal))
+        chain.append(np.where(valid[:, None], goal, prev))
+    return np.stack(chain, 1)
+
+
+def smooth_target_point_paths(robot, n_paths: int, seed: int, steps: int = 170, dt: float = 0.1, substeps: int = 24,
+                              in_collision: Callable | None = None, n_goals: int = 60,
+                              switch_range: tuple[float, float] = (0.3, 0.8),
+                              speed_range: tuple[float, float] = (0.5, 1.0), target_spread: float | None = 0.7,
+                              response: float = 0.4, ik_seeds: int = 2,
+                              sample_margin: float = 0.05, resampling_distance: float = 0.1,
+                              curvature_distance: float = 0.3, min_steps: int = 40, path_joints=None,
+                              max_rounds: int = 20) -> TargetPointResult:
+    """Target-point paths that move *through* their targets without stopping (the papers'
+    reaching agent's recordings; paper 000 §V-A): random reachable Cartesian targets as joint
+    goals (:func:`_goal_chain`), driven through by :func:`through_goals` with a per-path switch
+    radius drawn from ``switch_range`` [rad] (small: close to every target, sharp turns; large:
+    wide sweeping curves) and a wanted speed drawn from ``speed_range`` (fractions of the velocity
+    limits), targets anywhere in the workspace or (``target_spread`` [rad]) near the previous one,
+    the controller's velocity response ``response`` [s], ``steps`` decision steps of motion, resampled by curvature. A motion
+    with a self-colliding setpoint is cut before it; one left shorter than ``min_steps`` is
+    drawn again. Deterministic for ``seed``. The defaults give the statistics of the papers' iiwa
+    target-point test set within 10 % (docs/paths.md §4; docs/results.md "Datasets")."""
+    if n_paths < 1 or steps < min_steps or n_goals < 1:
+        raise ValueError(f"need n_paths >= 1, steps >= min_steps, n_goals >= 1; got {n_paths}, {steps}, {n_goals}")
+    limits = robot.limits
+    lo, hi = _finite_limits(limits, sample_margin)
+    motions: list[np.ndarray] = []
+    goals_out: list[np.ndarray] = []
+    for round_ in range(max_rounds):
+        need = n_paths - len(motions)
+        if need <= 0:
+            break
+        sub_seed = seed * 1000 + round_
+        start = _collision_free_starts(robot, sub_seed, need, in_collision, sample_margin)
+        chain = _goal_chain(robot, sub_seed, need, n_goals, start, lo, hi, in_collision, ik_seeds, target_spread)
+        switch = np.asarray(jax.random.uniform(jax.random.PRNGKey(sub_seed), (need,), minval=switch_range[0],
+                                               maxval=switch_range[1]))
+        speed = np.asarray(jax.random.uniform(jax.random.PRNGKey(sub_seed + 7), (need,), minval=speed_range[0],
+                                              maxval=speed_range[1]))
+        q, _ = through_goals(limits, jnp.asarray(start, jnp.float32), jnp.asarray(chain[:, 1:], jnp.float32), steps,
+                             dt, substeps, jnp.asarray(switch, jnp.float32), jnp.asarray(speed, jnp.float32), response)
+        q = np.asarray(q, np.float64)
+        for i in range(need):
+            m = q[i]
+            if in_collision is not None:
+                hit = np.flatnonzero(np.asarray(in_collision(m[::4])))
+                if hit.size:
+                    m = m[: max(4 * hit[0] - substeps, 1)]
+            if len(m) >= min_steps * substeps:
+                motions.append(m)
+                goals_out.append(chain[i])
+    else:
+        if len(motions) < n_paths:
+            raise RuntimeError(f"only {len(motions)} of {n_paths} smooth target-point paths after {max_rounds} rounds")
+    motions = motions[:n_paths]
+    paths = _resample(motions, path_joints, resampling_distance, curvature_distance, limits)
+    return TargetPointResult(paths, motions, goals_out[:n_paths], [np.zeros((0, 3))] * n_paths)

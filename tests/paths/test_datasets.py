@@ -104,7 +104,7 @@ def test_import_json_and_csv(tmp_path):
     (lambda p: p[:1], r"at least 2 distinct knots, got 1 knot"),
     (lambda p: np.repeat(p[:1], 5, 0), r"at least 2 distinct knots, got 5 knot\(s\) \(1 distinct\)"),
     (lambda p: np.where((np.arange(len(p)) == 2)[:, None] & (np.arange(7) == 1), 2.5, p),
-     r"knot 2, iiwa_joint_2 = 2.5 rad is outside the position limits \[-2.0594, 2.0594\]"),
+     r"knot 2, iiwa_joint_2 = 2.5 rad is beyond the robot.s limits \[-2.0594, 2.0594\]"),
     (lambda p: p[None], r"expected a \[K, n_joints\] array"),
 ])
 def test_import_errors(tmp_path, make, message):
@@ -163,6 +163,15 @@ def test_cli_import_and_stats(tmp_path):
     out = run("import", str(file), "--robot", "iiwa", "--kind", "demo", "--root", root)
     assert out.returncode == 0, out.stderr
     assert "iiwa/demo/test" in out.stdout and "3 paths" in out.stdout
+    assert "re-knotted by the rule of iiwa/mixed" in out.stdout
+    cfg = D.read_config("iiwa", "demo", root)
+    assert cfg["source"]["test"]["knot_rule"]["max_spacing"] == pytest.approx(
+        D.read_config("iiwa", "mixed")["max_dis_between_knots"])
+    assert cfg["max_dis_between_knots"] <= cfg["source"]["test"]["knot_rule"]["max_spacing"] + 1e-9
+    out = run("import", str(file), "--robot", "iiwa", "--kind", "kept", "--root", root, "--keep-knots")
+    assert out.returncode == 0, out.stderr
+    for given, stored in zip(iiwa_paths(3), D.load_split("iiwa", "kept", "test", root)):
+        np.testing.assert_array_equal(given, stored)
     out = run("stats", "--root", root)
     assert out.returncode == 0 and "iiwa/demo/test" in out.stdout and "spacing median" in out.stdout
     bad = write_npz(tmp_path, [iiwa_paths(1)[0][:, :5]], "bad.npz")

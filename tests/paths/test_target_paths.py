@@ -92,3 +92,35 @@ def test_safe_random_agent_avoids_a_forbidden_region(iiwa):
         assert not forbidden(m).any() and _inside(iiwa, m)
         _continuous(iiwa, m)
         assert len(m) >= 10 * 24  # at least the requested decision steps of setpoints
+
+
+def test_smooth_target_point_paths_move_through_their_targets(iiwa):
+    """The papers' kind: the robot passes its targets without stopping (the speed stays up between
+    the start and the end), inside the limits, collision-free, continuous, deterministic."""
+    kw = dict(steps=60, min_steps=20, n_goals=12, in_collision=lambda q: in_collision(iiwa, q))
+    res = G.smooth_target_point_paths(iiwa, B, 5, **kw)
+    again = G.smooth_target_point_paths(iiwa, B, 5, **kw)
+    for path, motion, other in zip(res.paths, res.motions, again.paths):
+        np.testing.assert_array_equal(path, other)
+        assert _inside(iiwa, path) and _inside(iiwa, motion)
+        _continuous(iiwa, motion)
+        assert not in_collision(iiwa, motion[::8]).any()
+        speed = np.linalg.norm(np.diff(motion, axis=0), axis=-1) * 240.0
+        inner = speed[240:-240]   # one second after the start and before the end
+        assert inner.min() > 0.01, f"stopped on the way ({inner.min():.4f} rad/s)"   # (target_point: 0)
+        assert len(path) >= 10
+
+
+def test_committed_smooth_and_mixed_sets_are_the_papers_kind():
+    """The smooth target-point test split is within 10 % of the papers' target-point statistics
+    (160 knots, 25.4 rad, median spacing 0.125; docs/paths.md §4), and the mixed set (the iiwa's
+    default training data) has no knot interval above its 0.3 rad cap."""
+    from mjx_pathtrack.paths import datasets
+
+    st = datasets.split_stats(datasets.load_split("iiwa", "smooth_target_point", "test"))
+    assert st.knots[1] == pytest.approx(160, rel=0.1) and st.length[1] == pytest.approx(25.4, rel=0.1)
+    assert st.spacing_median == pytest.approx(0.125, rel=0.1)
+    cfg = datasets.read_config("iiwa", "mixed")
+    assert cfg["source"]["max_spacing"] == 0.3 and cfg["max_dis_between_knots"] <= 0.3
+    for split in ("train", "test"):
+        assert datasets.split_stats(datasets.load_split("iiwa", "mixed", split)).spacing_max <= 0.3

@@ -310,15 +310,22 @@ def test_preset_paper_is_the_recipe_at_a_larger_budget_and_explicit_flags_win():
     import train as cli
     from mjx_pathtrack.config.presets import RECIPES, recipe
 
+    # the iiwa trains on the mixed paths by default (docs/paths.md §5)
+    args, cfg = cli.parse_args([])
+    assert (args.out, cfg.dataset) == ("runs/iiwa_mixed", "mixed") and cfg == TrainConfig().replace(dataset="mixed")
     args, cfg = cli.parse_args(["--preset", "paper"])
-    assert args.out == "runs/iiwa_random_paper"
-    assert cfg == TrainConfig().replace(**recipe("paper")) and cfg.ppo.num_timesteps > TrainConfig().ppo.num_timesteps
-    # the default recipe, longer, with the papers' alpha and more train paths: the privileged
-    # critic, the falling learning rate and predictive braking are the defaults of both
-    default = TrainConfig()
+    assert args.out == "runs/iiwa_mixed_paper"
+    assert cfg == TrainConfig().replace(dataset="mixed", **recipe("paper", "iiwa", "mixed"))
+    assert cfg.ppo.num_timesteps > TrainConfig().ppo.num_timesteps
+    # the default recipe, longer, with the papers' alpha: the privileged critic, the falling
+    # learning rate and predictive braking are the defaults of both
+    default = TrainConfig().replace(dataset="mixed")
     assert cfg.replace(num_timesteps=default.ppo.num_timesteps, num_evals=default.eval.num_evals,
-                               alpha=default.env.reward.distance, num_train_paths=default.num_train_paths) == default
-    assert (cfg.env.reward.distance, cfg.num_train_paths) == (2.0, 1000)
+                       alpha=default.env.reward.distance) == default
+    assert (cfg.env.reward.distance, cfg.num_train_paths) == (2.0, 0)
+    # on the random paths: also their 1000 regenerated train paths
+    args, cfg = cli.parse_args(["--preset", "paper", "--dataset", "random"])
+    assert args.out == "runs/iiwa_random_paper" and (cfg.env.reward.distance, cfg.num_train_paths) == (2.0, 1000)
     assert (cfg.network.privileged_critic, cfg.ppo.final_learning_rate, cfg.env.end_braking, cfg.env.end_stop) == (
         True, 3e-5, "predictive", "end_knot")
     args, cfg = cli.parse_args(["--preset", "paper", "--robot", "armar6", "--num-timesteps", "1000"])
