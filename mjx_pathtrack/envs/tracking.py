@@ -275,7 +275,9 @@ class PathTrackingEnv(Env):
         [m, n_path]`` (paper 000 Fig. 4; :func:`~mjx_pathtrack.core.spline.replace_ahead`): the robot
         continues from where it is, the observation shows the new knots at once. The time budget
         is rescaled to the new remaining length; braking stops if the path now goes on.
-        Needs ``EnvConfig(adjustable=True)``. Jittable; vmap it for a batch."""
+        Needs ``EnvConfig(adjustable=True)``. Jittable; vmap it for a batch. The knots are used
+        as given: re-knot a user's knots first with :meth:`user_knots` (host side), as
+        :class:`~mjx_pathtrack.deploy.controller.OnlineTracker` does."""
         track = state.pipeline_state
         if track.path is None:
             raise ValueError("replace_reference needs EnvConfig(adjustable=True)")
@@ -286,6 +288,15 @@ class PathTrackingEnv(Env):
         track = track._replace(path=path, n_knots=path.n_knots, max_steps=track.steps + jnp.maximum(remaining, 1),
                                braking=track.braking & self.end_reached(path, track.s))
         return state.replace(pipeline_state=track, obs=self.observe(track))
+
+    def user_knots(self, knots, start_slope=None) -> np.ndarray:
+        """A user's knots ``[K, n_path]`` re-placed by the training data's :attr:`knot_rule`
+        (:func:`~mjx_pathtrack.core.knot_rule.reknot`; host side, NumPy): what
+        :meth:`replace_reference` should be given so that the policy sees knots like its training
+        knots (``start_slope``: the unit tangent of the path being continued)."""
+        from mjx_pathtrack.core.knot_rule import reknot
+
+        return reknot(knots, self.knot_rule, start_slope)
 
     def transition(self, track: TrackState, action: Array, fastest_stop: Array | bool = False):
         """One decision step: ``(track, action [n]) -> (track', reward, done, metrics)``.

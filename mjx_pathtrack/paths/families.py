@@ -90,6 +90,20 @@ def _ik_track(robot, points: list[np.ndarray], q0: np.ndarray) -> list[np.ndarra
     return [out[b, :count[b]] if ok[b] else None for b in range(len(points))]
 
 
+def _collect(count: int, what: str, candidate: Callable[[], np.ndarray | None]) -> list[np.ndarray]:
+    """``count`` paths from ``candidate()`` (None: rejected), at most ``40 count`` tries."""
+    paths = []
+    for _ in range(40 * count):
+        if len(paths) == count:
+            return paths
+        path = candidate()
+        if path is not None:
+            paths.append(path)
+    if len(paths) == count:
+        return paths
+    raise RuntimeError(f"only {len(paths)} of {count} {what} paths after {40 * count} tries")
+
+
 def _start(robot, rng, lo, hi, collide, tries: int = 200) -> np.ndarray:
     for _ in range(tries):
         q = rng.uniform(lo, hi)
@@ -231,15 +245,14 @@ def planner_dense(robot, count: int, seed: int, spacing: float = 0.03) -> list[n
     lo, hi = _limits(robot, 0.05)
     collide = _collide(robot)
     pj = np.flatnonzero(np.asarray(robot.path_mask))
-    paths = []
-    for _ in range(40 * count):
-        if len(paths) == count:
-            return paths
+
+    def candidate():
         q = _sines(rng, lo, hi, rng.uniform(6.0, 14.0), 0.6)
         if collide is not None and np.asarray(collide(q[::50])).any():
-            continue
-        paths.append(_arc_resample(q[:, pj], spacing))
-    raise RuntimeError(f"only {len(paths)} of {count} planner-dense paths")
+            return None
+        return _arc_resample(q[:, pj], spacing)
+
+    return _collect(count, "planner-dense", candidate)
 
 
 def teach_points(robot, count: int, seed: int) -> list[np.ndarray]:
@@ -248,19 +261,17 @@ def teach_points(robot, count: int, seed: int) -> list[np.ndarray]:
     lo, hi = _limits(robot, 0.1)
     collide = _collide(robot)
     pj = np.flatnonzero(np.asarray(robot.path_mask))
-    paths = []
-    for _ in range(40 * count):
-        if len(paths) == count:
-            return paths
+    full_lo, full_hi = _limits(robot, 0.0)
+
+    def candidate():
         q = [_start(robot, rng, lo, hi, collide)]
         for _ in range(rng.integers(3, 12)):
             d = rng.normal(size=len(lo))
             q.append(np.clip(q[-1] + rng.uniform(0.3, 1.0) * d / np.linalg.norm(d), lo, hi))
         knots = np.stack(q)
-        full_lo, full_hi = _limits(robot, 0.0)
-        if _ok(robot, knots, full_lo, full_hi, collide):
-            paths.append(knots[:, pj])
-    raise RuntimeError(f"only {len(paths)} of {count} teach-point paths")
+        return knots[:, pj] if _ok(robot, knots, full_lo, full_hi, collide) else None
+
+    return _collect(count, "teach-point", candidate)
 
 
 def near_limits(robot, count: int, seed: int, spacing: float = 0.1, buffer: float | None = None) -> list[np.ndarray]:
@@ -274,23 +285,22 @@ def near_limits(robot, count: int, seed: int, spacing: float = 0.1, buffer: floa
     lo, hi = _limits(robot, 0.0)
     collide = _collide(robot)
     pj = np.flatnonzero(np.asarray(robot.path_mask))
-    paths = []
-    for _ in range(40 * count):
-        if len(paths) == count:
-            return paths
+
+    def candidate():
         q = _sines(rng, lo, hi, rng.uniform(3.0, 6.0), 0.6)
         hug = rng.choice(len(lo), size=min(3, len(lo)), replace=False)
         for j in hug:   # stretch the joint's motion to 99 % of its range
             span = q[:, j].max() - q[:, j].min()
             q[:, j] = lo[j] + 0.005 * (hi[j] - lo[j]) + (q[:, j] - q[:, j].min()) * 0.99 * (hi[j] - lo[j]) / span
         if collide is not None and np.asarray(collide(q[::50])).any():
-            continue
+            return None
         knots = _arc_resample(q, spacing)
         for j in hug:   # the extreme knots on the URDF limits
             knots[np.argmax(knots[:, j]), j] = hi[j] + buffer
             knots[np.argmin(knots[:, j]), j] = lo[j] - buffer
-        paths.append(knots[:, pj])
-    raise RuntimeError(f"only {len(paths)} of {count} near-limit paths")
+        return knots[:, pj]
+
+    return _collect(count, "near-limit", candidate)
 
 
 #: family name -> ``generator(robot, count, seed) -> [K_i, n_path] knot arrays``

@@ -453,7 +453,7 @@ def readme_deploy_example() -> str:
 
 
 def test_readme_deploy_example_runs_as_written_on_the_longest_committed_test_path(tmp_path):
-    """The README example with an (untrained) iiwa export in place of ``runs/iiwa_random/export``
+    """The README example with an (untrained) iiwa export in place of ``runs/iiwa_mixed/export``
     on the committed iiwa random test path with the most knots (default ``max_knots``), then a
     changed path ahead; every setpoint within the limits."""
     from brax.training.acme import running_statistics, specs
@@ -473,11 +473,11 @@ def test_readme_deploy_example_runs_as_written_on_the_longest_committed_test_pat
     export_policy(tmp_path / "export", ppo_networks.make_inference_fn(nets), params, env, "iiwa", iiwa.JOINT_NAMES)
 
     code = readme_deploy_example()
-    assert code.count('"runs/iiwa_random/export"') == 1
+    assert code.count('"runs/iiwa_mixed/export"') == 1
     knots = max(datasets.load_split("iiwa", "random", "test"), key=len)
     assert len(knots) > 64  # longer than the tracker's old default limit
     namespace = {"p0": knots[0], "knots": knots, "new_knots": knots[len(knots) // 2:][::-1]}
-    exec(code.replace('"runs/iiwa_random/export"', repr(str(tmp_path / "export"))), namespace)
+    exec(code.replace('"runs/iiwa_mixed/export"', repr(str(tmp_path / "export"))), namespace)
     out = namespace["out"]
     assert out.position.shape == (100, 7) and np.all(np.isfinite(out.position))
     tracker = namespace["tracker"]

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import reward as R
+from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, normalize_position
 from mjx_pathtrack.envs.wrappers import wrap_for_training
 from path_fixtures import line_path, random_walk_paths
@@ -318,6 +319,41 @@ def test_path_replaced_mid_episode_continues_within_limits():
     with pytest.raises(ValueError, match="adjustable"):
         plain = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(n_paths=1), 0.5)
         plain.replace_reference(plain.reset(jax.random.PRNGKey(0)), jnp.zeros((3, 7)))
+
+
+def test_a_dense_detour_is_reknotted_before_it_replaces_the_path_ahead():
+    """env.user_knots re-places a planner's dense waypoints by the env's knot rule (default: the
+    papers' curvature rule capped at max_dis 0.5) for replace_reference, jitted and batched: the
+    observation then shows the re-knotted knots, which lie on the dense curve."""
+    from mjx_pathtrack.core.knot_rule import KnotRule, curve_distance
+
+    cfg = EnvConfig(adjustable=True, terminate_deviation=None, start_range=(0.0, 0.2))
+    env = PathTrackingEnv(iiwa.joint_limits(DT), random_walk_paths(n_paths=3), 0.5, cfg)
+    assert env.knot_rule == KnotRule(max_spacing=0.5)
+    batch = 4
+    state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(1), batch))
+    track = state.pipeline_state
+    tangent = np.asarray(jax.vmap(lambda t: S.tangent_at(env.reference(t), t.s))(track))
+    here = np.asarray(jax.vmap(lambda t: S.point_at(env.reference(t), t.s))(track))
+    direction = np.array([0.5, -0.3, 0.4, 0.2, -0.5, 0.3, 0.1])
+    new = []
+    for b in range(batch):
+        dense = here[b] + np.linspace(0.03, 1.2, 40)[:, None] * direction + np.sin(np.linspace(0, 3, 40))[:, None] * 0.2
+        k = env.user_knots(np.concatenate([here[b][None], dense]), start_slope=tangent[b])
+        assert len(k) < len(dense) / 2 and curve_distance(np.concatenate([here[b][None], dense]), k, start_slope=tangent[b])[0] < 0.05
+        new.append(k[1:])
+    count = np.array([len(k) for k in new])
+    padded = np.stack([np.concatenate([k, np.repeat(k[-1:], count.max() - len(k), 0)]) for k in new])
+    out = jax.jit(jax.vmap(env.replace_reference))(state, jnp.asarray(padded, jnp.float32), jnp.asarray(count))
+    path = out.pipeline_state.path
+    for b in range(batch):   # the reference ahead ends with exactly the re-knotted knots
+        n = int(path.n_knots[b])
+        np.testing.assert_allclose(np.asarray(path.knots[b, n - count[b]:n]), new[b], atol=1e-6)
+    # and the observation shows them: every re-knotted knot within the window appears in it
+    shown = np.asarray(out.obs)[:, 21:21 + 9 * 7].reshape(batch, 9, 7)
+    first = np.asarray(normalize_position(jnp.asarray(padded[:, 0], jnp.float32), env.limits.pos_min,
+                                          env.limits.pos_max))
+    assert np.all(np.min(np.abs(shown - first[:, None]).max(-1), axis=1) < 1e-5)
 
 
 def _stop_rollout(dt: float, end_stop: str, jerk_factor: float = 1.0, batch: int = 48, tolerance: float = 0.05):

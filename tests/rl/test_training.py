@@ -282,7 +282,7 @@ def test_presets_set_the_papers_settings_as_flag_defaults():
     assert cfg.env.substeps == 24  # controlled legs: the papers' 240 Hz physics; fixed legs 80 Hz unless given
     assert cli.parse_args(["--task", "balance"])[1].env.substeps == 8
     assert cli.parse_args(["--task", "balance", "--substeps", "24"])[1].env.substeps == 24
-    assert cli.parse_args([])[1] == TrainConfig()  # no preset for the iiwa: the defaults
+    assert cli.parse_args([])[1] == TrainConfig().replace(dataset="mixed")  # the iiwa's preset: its mixed paths
     with pytest.raises(SystemExit):
         cli.parse_args(["--task", "juggling"])
     assert cli.parse_args(["--knots-frame", "absolute"])[1].env_config().knots_frame == "absolute"
