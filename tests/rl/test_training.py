@@ -30,7 +30,9 @@ TINY = dict(num_envs=8, num_timesteps=640, unroll_length=5, batch_size=8, num_mi
 
 
 def tiny_args(out):
-    args = ["--out", str(out)]
+    """train.py flags of ``TrainConfig().replace(**TINY)`` (the CLI's iiwa default dataset is
+    mixed; TrainConfig's is random)."""
+    args = ["--out", str(out), "--dataset", TrainConfig().dataset]
     for key, value in TINY.items():
         flag = "--" + key.replace("_", "-")
         args += [flag, *map(str, value)] if isinstance(value, tuple) else [flag, str(value)]
