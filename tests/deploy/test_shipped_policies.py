@@ -1,5 +1,6 @@
 """The trained policies shipped in ``policies/`` (policies/README.md): each loads with today's
-code as a run directory and as an export, the two act alike, and the ball policy still balances
+code as a run directory and as an export, the two act alike, the iiwa policy tracks its test
+paths whatever their knot spacing, and the ball policy still balances
 the ball on test paths, the ARMAR-4 policies track their target-point paths and the one with
 controlled legs keeps the robot standing. A change to the observation, the action mapping or the export format
 that would silently invalidate them fails here."""
@@ -24,7 +25,7 @@ POLICIES = sorted(p for p in (REPO / "policies").iterdir() if (p / "config.json"
 
 
 def test_policies_are_shipped():
-    assert [p.name for p in POLICIES] == ["armar4_balance_controlled", "armar4_target_point", "ball_on_plate"]
+    assert [p.name for p in POLICIES] == ["armar4_balance_controlled", "armar4_target_point", "ball_on_plate", "iiwa"]
 
 
 @pytest.mark.parametrize("run", POLICIES, ids=lambda p: p.name)
@@ -75,3 +76,57 @@ def test_the_shipped_armar4_balance_policy_tracks_standing_on_its_legs(tmp_path)
     assert m["episodes"] == 8 and "robot_fell_rate" in m["task_failures"]
     assert m["task_failed_rate"] <= 1 / 8 and m["end_reached_rate"] >= 6 / 8 and m["joint_dev_mean"] < 0.15
     assert m["limit_audit"]["ok"]
+
+
+def test_the_shipped_iiwa_policy_tracks_its_test_paths(tmp_path):
+    """16 test sub-paths of the mixed set (random and smooth target point), deterministic export:
+    the full evaluation (200 sub-paths, docs/results.md "Any path a user brings") reaches the end
+    in END_200; a policy that does not track reaches none."""
+    m = _evaluate(tmp_path, "policies/iiwa/export", "--episodes", "16")
+    assert m["episodes"] == 16 and m["robot"] == "iiwa" and m["paths"] == "iiwa/mixed/test"
+    assert m["end_reached_rate"] >= 14 / 16 and m["joint_dev_mean"] < 0.12
+    assert m["limit_audit"]["ok"]
+
+
+def test_one_curve_gives_one_result_whatever_its_knots(tmp_path):
+    """The same 16 test curves of the shipped iiwa policy, whole, given with their own knots,
+    with waypoints every 0.03 rad, every third of those and uniformly every 0.15 rad: re-knotted
+    by the policy's rule, each spacing reaches the end in as many episodes (within one) at the
+    same duration ratio to TOPP-RA (within 3 %), batched and jitted as evaluate.py runs them; and
+    the online tracker takes the dense waypoints to the end like the curve's own knots."""
+    from mjx_pathtrack.core.spline_fit import fit_spline
+    from mjx_pathtrack.deploy.controller import OnlineTracker, Status
+    from mjx_pathtrack.paths import datasets
+
+    source = R.load_policy_source(str(REPO / "policies/iiwa/export"))
+    native = datasets.load_split("iiwa", "mixed", "test")[:16]
+    results = {}
+    for spacing in (None, 0.03, 0.09, 0.15):
+        given = native if spacing is None else [
+            f.point_at(np.append(np.arange(0.0, f.length, spacing), f.length)) for f in map(fit_spline, native)]
+        file = tmp_path / f"paths_{spacing}.npz"
+        datasets.save_split(file, given)
+        user = R.load_user_paths(str(file), "iiwa", None if spacing is None else source.training_knot_rule(),
+                                 cartesian=False)
+        env, robot, _ = R.build_env(source, user, full_paths=True)
+        summary, table, _ = R.run_evaluation(env, source.policy, robot, timing_decisions=0, measure=user.curves)
+        results[spacing] = (int(np.sum(table["end_reached"])), summary["ratio_to_toppra_mean"])
+    ends, ratio = results[None]
+    assert ends >= 14, results
+    for spacing, (e, r) in results.items():
+        assert abs(e - ends) <= 1 and abs(r / ratio - 1) <= 0.03, (spacing, results)
+    # the online tracker on the first curve: own knots and dense waypoints, same time to the end
+    policy = load_policy(REPO / "policies/iiwa/export")
+    times = []
+    fit = fit_spline(native[0])
+    dense = fit.point_at(np.append(np.arange(0.0, fit.length, 0.03), fit.length))
+    for knots in (native[0], dense):
+        t = OnlineTracker(policy, knots[0], controller_dt=0.01, keep_knots=knots is native[0])
+        t.set_path(knots)
+        for step in range(200):
+            out = t.step()
+            if out.status is Status.STOPPED:
+                break
+        assert out.reached_end and out.status is Status.STOPPED
+        times.append(step)
+    assert abs(times[1] - times[0]) <= max(2, 0.03 * times[0]), times
