@@ -22,7 +22,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mjx_pathtrack.core.spline_fit import SplineFit, curvature_table, fit_spline
+from mjx_pathtrack.core.spline_fit import SplineFit, curvature_positions, distance_positions, fit_spline
 
 #: a capped interval is split so that its parts are at most this share of ``max_spacing``: the
 #: refitted spline's arc between two knots differs slightly from the chord-parameter positions
@@ -82,19 +82,12 @@ def rule_positions(fit: SplineFit, rule: KnotRule, start_slope=None) -> tuple[Sp
     """``(base, s [K'])``: the curve the rule's knots lie on and their arc positions [rad] on it
     (increasing, ``0`` and ``base.length`` included). With a curvature rule the base is the
     spline through the distance-stage knots, as in the dataset pipeline."""
-    d = rule.resampling_distance
-    s = np.append(np.arange(0.0, fit.length, d), fit.length)
+    s = distance_positions(fit, rule.resampling_distance)
     if rule.curvature_distance is None:
         base = fit
     else:
         base = fit_spline(fit.point_at(s), fit.samples_per_segment, start_slope)
-        kap = curvature_table(base)
-        levels = np.append(np.arange(0.0, kap[-1], rule.curvature_distance), kap[-1])
-        j = np.clip(np.searchsorted(kap, levels, side="left") - 1, 0, len(kap) - 2)
-        dk = kap[j + 1] - kap[j]
-        frac = np.where(dk > 0, (levels - kap[j]) / np.where(dk > 0, dk, 1.0), 0.0)
-        s = base.table_s[j] + np.clip(frac, 0.0, 1.0) * (base.table_s[j + 1] - base.table_s[j])
-        s[0], s[-1] = 0.0, base.length
+        s = curvature_positions(base, rule.curvature_distance)
     s = np.unique(s)   # a zero-curvature stretch repeats a level's position
     if rule.max_spacing is not None:
         s = cap_spacing(s, SPACING_SAFETY * rule.max_spacing)

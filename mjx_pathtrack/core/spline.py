@@ -42,7 +42,8 @@ from mjx_pathtrack.core.reward import weighted_deviation
 from mjx_pathtrack.core.spline_fit import (DUPLICATE_DISTANCE, SAMPLES_PER_SEGMENT, SplineFit, _horner, _locate, _segment_arc, fit_spline,
                                           searchsorted_row)
 # the offline half, re-exported: ``spline.fit_spline``, ``spline.resample`` etc.
-from mjx_pathtrack.core.spline_fit import (curvature_table, dedup_knots, resample, resample_by_curvature, resample_by_distance)  # noqa: F401
+from mjx_pathtrack.core.spline_fit import (curvature_table, dedup_knots, distance_positions, resample,  # noqa: F401
+                                          resample_by_curvature, resample_by_distance)
 
 Array = jax.Array
 

@@ -105,12 +105,16 @@ def fit_spline(knots, samples_per_segment: int = SAMPLES_PER_SEGMENT, start_slop
     return SplineFit(k, h, coeffs, table_s, table_dtds, samples_per_segment)
 
 
-def resample_by_distance(fit: SplineFit, distance: float) -> np.ndarray:
-    """New knots ``[K', n]`` at arc lengths ``0, d, 2d, ...`` plus the end (docs/paths.md §3)."""
+def distance_positions(fit: SplineFit, distance: float) -> np.ndarray:
+    """Arc positions ``0, d, 2d, ...`` plus the end [rad] (docs/paths.md §3)."""
     if not distance > 0:
         raise ValueError(f"resampling distance must be > 0, got {distance}")
-    s = np.append(np.arange(0.0, fit.length, distance), fit.length)
-    return fit.point_at(s)
+    return np.append(np.arange(0.0, fit.length, distance), fit.length)
+
+
+def resample_by_distance(fit: SplineFit, distance: float) -> np.ndarray:
+    """New knots ``[K', n]`` at arc lengths ``0, d, 2d, ...`` plus the end (docs/paths.md §3)."""
+    return fit.point_at(distance_positions(fit, distance))
 
 
 def curvature_table(fit: SplineFit) -> np.ndarray:
@@ -129,9 +133,9 @@ def curvature_table(fit: SplineFit) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(pieces.ravel())])
 
 
-def resample_by_curvature(fit: SplineFit, curvature_distance: float) -> np.ndarray:
-    """New knots ``[K', n]`` at equal increments of integrated curvature (docs/paths.md §3,
-    paper Fig. 8b), plus the end point. Straight stretches get few knots, bends many."""
+def curvature_positions(fit: SplineFit, curvature_distance: float) -> np.ndarray:
+    """Arc positions [rad] at equal increments of integrated curvature plus the end
+    (:func:`resample_by_curvature`), ``0`` and ``fit.length`` included."""
     if not curvature_distance > 0:
         raise ValueError(f"curvature distance must be > 0, got {curvature_distance}")
     kap = curvature_table(fit)
@@ -142,7 +146,13 @@ def resample_by_curvature(fit: SplineFit, curvature_distance: float) -> np.ndarr
     frac = np.where(dk > 0, (levels - kap[j]) / np.where(dk > 0, dk, 1.0), 0.0)
     s = fit.table_s[j] + np.clip(frac, 0.0, 1.0) * (fit.table_s[j + 1] - fit.table_s[j])
     s[0], s[-1] = 0.0, fit.length
-    return fit.point_at(s)
+    return s
+
+
+def resample_by_curvature(fit: SplineFit, curvature_distance: float) -> np.ndarray:
+    """New knots ``[K', n]`` at equal increments of integrated curvature (docs/paths.md §3,
+    paper Fig. 8b), plus the end point. Straight stretches get few knots, bends many."""
+    return fit.point_at(curvature_positions(fit, curvature_distance))
 
 
 def resample(knots, distance: float = 0.1, curvature_distance: float | None = 0.3,

@@ -270,21 +270,19 @@ def build_env(source: PolicySource, paths_file: "str | UserPaths | None" = None,
         except ValueError as e:
             raise EvaluationError(f"--floating-base: {e}") from e
     robot = robots.load_robot(cfg.robot, dt=cfg.env.dt)
+    if paths_file is not None and not isinstance(paths_file, UserPaths):
+        paths_file = load_user_paths(paths_file, cfg.robot, source.training_knot_rule(), cartesian=False)
     if cfg.task == "ball_on_plate":  # whole paths, ball always simulated; episodes end when it falls
         from mjx_pathtrack.envs.tasks.ball_on_plate import make_task_env
 
         if paths_file is None:
             return make_task_env(cfg, split, evaluation=True), robot, f"{cfg.robot}/{cfg.dataset}/{split}"
-        if not isinstance(paths_file, UserPaths):
-            paths_file = load_user_paths(paths_file, cfg.robot, source.training_knot_rule(), cartesian=False)
         check_level_plate(paths_file, cfg.env.dt)
         return make_task_env(cfg, split, evaluation=True, paths=paths_file.paths), robot, paths_file.label
     max_dis = source.max_dis
     if max_dis is None:
         max_dis = float(datasets.read_config(cfg.robot, cfg.dataset, cfg.dataset_root)["max_dis_between_knots"])
     if paths_file is not None:
-        if not isinstance(paths_file, UserPaths):
-            paths_file = load_user_paths(paths_file, cfg.robot, source.training_knot_rule(), cartesian=False)
         paths, label = paths_file.paths, paths_file.label
     else:
         paths, label = datasets.load_paths(cfg.robot, cfg.dataset, split, root=cfg.dataset_root), \

@@ -428,12 +428,13 @@ def measured_points(env: PathTrackingEnv, ro: Rollout, measure: list, s: np.ndar
     ``start_offset``, else absolute), mapped in proportion to the lengths of the reference and the
     measured curve, clamped to the sub-path's end (float64)."""
     full = np.asarray(env.paths.length, np.float64)[ro.path_index]
+    sub_end = np.asarray(ro.paths.length, np.float64)
     out = np.empty(s.shape + (len(env.path_joints),))
     for b, index in enumerate(ro.path_index):
         fit = measure[int(index)]
         scale = fit.length / max(full[b], 1e-12)
         start = scale * ro.s_start[b] if start_offset else 0.0
-        end = scale * float(np.asarray(ro.paths.length)[b])
+        end = scale * sub_end[b]
         out[b] = fit.point_at(np.clip(start + (s[b] if start_offset else scale * s[b]), 0.0, end))
     return out
 

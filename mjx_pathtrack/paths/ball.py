@@ -148,9 +148,15 @@ def _track_curve(kin: PlateKinematics, q0: np.ndarray, curve: np.ndarray, cfg: B
 
 def path_tilt_deg(kin: PlateKinematics, knots: np.ndarray, spacing: float = 0.01) -> np.ndarray:
     """Plate tilt [deg] along the natural cubic spline through ``knots`` every ``spacing`` rad."""
+    return _tilt_along(kin, knots, spacing)[2]
+
+
+def _tilt_along(kin: PlateKinematics, knots: np.ndarray, spacing: float):
+    """``(fit, s, tilt)``: the spline through ``knots``, arc positions every ``spacing`` rad (end
+    included) and the plate tilt [deg] there."""
     fit = spline.fit_spline(knots)
-    s = np.append(np.arange(0.0, fit.length, spacing), fit.length)
-    return kin.tilt_deg(fit.point_at(s))
+    s = spline.distance_positions(fit, spacing)
+    return fit, s, kin.tilt_deg(fit.point_at(s))
 
 
 def check_level(kin: PlateKinematics, knots: np.ndarray, max_tilt_deg: float = BallPathConfig.max_tilt_deg,
@@ -161,9 +167,7 @@ def check_level(kin: PlateKinematics, knots: np.ndarray, max_tilt_deg: float = B
     plate level, docs/paths.md §5)."""
     from mjx_pathtrack.paths.datasets import DatasetError
 
-    fit = spline.fit_spline(knots)
-    s = np.append(np.arange(0.0, fit.length, spacing), fit.length)
-    tilt = kin.tilt_deg(fit.point_at(s))
+    fit, s, tilt = _tilt_along(kin, knots, spacing)
     worst = int(np.argmax(tilt))
     if tilt[worst] > max_tilt_deg:
         knot = int(np.argmin(np.abs(fit.knot_s - s[worst])))
