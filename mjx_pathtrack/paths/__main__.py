@@ -2,6 +2,12 @@
 
 import sys
 
-from mjx_pathtrack.paths.cli import main
+import mjx_pathtrack
+
+# before JAX starts: generation and import run MJX kinematics (IK, FK, self-collision), which
+# XLA's default CPU emitters make ~100x slower (a target-point split took hours instead of minutes)
+mjx_pathtrack.prepare_xla()
+
+from mjx_pathtrack.paths.cli import main  # noqa: E402
 
 sys.exit(main())
