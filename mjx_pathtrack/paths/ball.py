@@ -55,12 +55,27 @@ class BallPathConfig:
     q2_range: tuple[float, float] = (0.3, 0.9)
     q4_range: tuple[float, float] = (-1.6, -0.8)
     q7_range: float = 1.5
+    # start poses: |q4| at least this [rad] (a straight elbow is singular for the level-plate IK)
+    min_elbow: float = 0.0
+    # start poses: plate centre at least this high [m] above the base and this far from its axis
+    min_height: float | None = None
+    min_radius: float = 0.0
     max_tilt_deg: float = 0.5  # acceptance bound along the fitted spline [deg]
     max_position_error: float = 1e-3  # IK acceptance [m]
     limit_margin: float = 0.05  # rad inside the position limits
     ik_iterations: int = 3
     ik_damping: float = 1e-3
     max_attempts_per_path: int = 60
+
+
+def whole_workspace() -> BallPathConfig:
+    """Start poses over the iiwa's whole level-plate workspace: base rotation, shoulder and elbow
+    of either sign (``q4`` in [-2, 2], ``|q4| >= 0.2``; ``q2`` in [-1.9, 1.9]), the plate
+    centre from 8 cm off the base axis to full reach and at least 10 cm above the base; the
+    papers' generator (the defaults) covers ``q2`` in [0.3, 0.9], ``q4`` in [-1.6, -0.8] and,
+    with the reflections, the plate 0.43-0.70 m from the base axis."""
+    return dataclasses.replace(BallPathConfig(), q1_range=2.8, q2_range=(-1.9, 1.9), q4_range=(-2.0, 2.0),
+                               min_elbow=0.2, min_height=0.1, min_radius=0.08)
 
 
 class PlateKinematics:
@@ -103,14 +118,22 @@ class PlateKinematics:
         return res, np.concatenate([self._jp[:, self.dof], jn[:2]])
 
 
-def _start_pose(rng: np.random.Generator, cfg: BallPathConfig, pos_max: np.ndarray) -> np.ndarray | None:
+def _start_pose(rng: np.random.Generator, cfg: BallPathConfig, pos_max: np.ndarray,
+                kin: "PlateKinematics | None" = None) -> np.ndarray | None:
+    """A level-plate start pose (module docstring, step 1), None if it misses the config's
+    bounds (wrist limit, elbow, plate height and distance from the base axis)."""
     q2 = rng.uniform(*cfg.q2_range)
     q4 = rng.uniform(*cfg.q4_range)
     q6 = q4 - q2  # joint 4 turns about -y: the plate tilt about y is q2 - q4 + q6
-    if abs(q6) > pos_max[5] - 4 * cfg.limit_margin:
+    if abs(q6) > pos_max[5] - 4 * cfg.limit_margin or abs(q4) < cfg.min_elbow:
         return None
-    return np.array([rng.uniform(-cfg.q1_range, cfg.q1_range), q2, 0.0, q4, 0.0, q6,
-                     rng.uniform(-cfg.q7_range, cfg.q7_range)])
+    q = np.array([rng.uniform(-cfg.q1_range, cfg.q1_range), q2, 0.0, q4, 0.0, q6,
+                  rng.uniform(-cfg.q7_range, cfg.q7_range)])
+    if kin is not None and (cfg.min_height is not None or cfg.min_radius > 0):
+        centre, _ = kin.pose(q)
+        if (cfg.min_height is not None and centre[2] < cfg.min_height) or np.hypot(*centre[:2]) < cfg.min_radius:
+            return None
+    return q
 
 
 def _cartesian_curve(rng: np.random.Generator, cfg: BallPathConfig, start: np.ndarray, yaw: float) -> np.ndarray:
@@ -124,10 +147,12 @@ def _cartesian_curve(rng: np.random.Generator, cfg: BallPathConfig, start: np.nd
     return fit.point_at(np.arange(0.0, fit.length, cfg.cartesian_step))
 
 
-def _track_curve(kin: PlateKinematics, q0: np.ndarray, curve: np.ndarray, cfg: BallPathConfig,
-                 lo: np.ndarray, hi: np.ndarray, max_length: float) -> np.ndarray | None:
-    """Joint positions ``[P', 7]`` along ``curve`` (damped least squares, warm start), stopped once
-    the joint path is ``max_length`` long; None if IK fails or a limit is hit first."""
+def track_curve(kin: PlateKinematics, q0: np.ndarray, curve: np.ndarray, cfg: BallPathConfig,
+                lo: np.ndarray, hi: np.ndarray, max_length: float | None = None) -> np.ndarray | None:
+    """Joint positions ``[P', 7]`` along the plate-centre points ``curve [P, 3]`` [m] (``curve[0]``
+    the start's), the plate kept level (damped least squares, warm start from ``q0``), stopped
+    once the joint path is ``max_length`` [rad] long; None if IK fails or a limit ``[lo, hi]`` is
+    hit first, or (``max_length`` given) the curve ends before that length."""
     q = q0.copy()
     out = [q.copy()]
     length = 0.0
@@ -141,9 +166,9 @@ def _track_curve(kin: PlateKinematics, q0: np.ndarray, curve: np.ndarray, cfg: B
             return None
         length += float(np.linalg.norm(q - out[-1]))
         out.append(q.copy())
-        if length >= max_length:
+        if max_length is not None and length >= max_length:
             return np.asarray(out)
-    return None
+    return None if max_length is not None else np.asarray(out)
 
 
 def path_tilt_deg(kin: PlateKinematics, knots: np.ndarray, spacing: float = 0.01) -> np.ndarray:
@@ -191,14 +216,14 @@ def ball_paths(robot, n_paths: int, seed: int, cfg: BallPathConfig = BallPathCon
         if counts["attempts"] >= cfg.max_attempts_per_path * n_paths:
             raise RuntimeError(f"only {len(paths)} of {n_paths} ball paths after {counts['attempts']} attempts: {counts}")
         counts["attempts"] += 1
-        q0 = _start_pose(rng, cfg, pos_max)
+        q0 = _start_pose(rng, cfg, pos_max, kin)
         target_length = rng.triangular(a, a, b)
         if q0 is None:
             counts["rejected_ik_or_limits"] += 1
             continue
         start, _ = kin.pose(q0)
         curve = _cartesian_curve(rng, cfg, start, q0[0])
-        dense = _track_curve(kin, q0, curve, cfg, lo, hi, 1.25 * target_length + cfg.resampling_distance)
+        dense = track_curve(kin, q0, curve, cfg, lo, hi, 1.25 * target_length + cfg.resampling_distance)
         if dense is None:
             counts["rejected_ik_or_limits"] += 1
             continue

@@ -16,6 +16,10 @@ knot spacing, so that ``benchmarks/generalisation.py`` measures a policy on path
 ``teach_points``       4-12 joint-space via points 0.3-1.0 rad apart (sparse teach-in)
 ``near_limits``        sine motions whose joints run to within 1 % of their position limits,
                        a few knots put on the URDF limits (beyond the model's by its buffer)
+``level_plate``        (ball on plate, :data:`BALL_FAMILIES`) a tray carried level: the plate
+                       centre along 2-4 horizontal straight segments or a horizontal arc, from
+                       a random configuration levelled by IK (either elbow, any reach),
+                       waypoints every 0.05 rad
 =====================  =========================================================================
 
 Every path is free of self-collision at samples every 0.01 rad (iiwa: :mod:`~mjx_pathtrack.robots.collision`)
@@ -303,7 +307,77 @@ def near_limits(robot, count: int, seed: int, spacing: float = 0.1, buffer: floa
     return _collect(count, "near-limit", candidate)
 
 
+def _levelled_start(kin, rng, lo, hi, iterations: int = 60, damping: float = 1e-3) -> np.ndarray | None:
+    """A random configuration in ``[lo, hi]`` turned level by damped least squares on the plate
+    normal, the plate centre held (None: not level within 0.05 deg, or outside the limits)."""
+    q = rng.uniform(lo, hi)
+    target, _ = kin.pose(q)
+    for _ in range(iterations):
+        res, jac = kin.residual_jacobian(q, target)
+        q = q - jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(5), res)
+    ok = np.all(q >= lo) and np.all(q <= hi) and float(kin.tilt_deg(q)) < 0.05
+    return q if ok else None
+
+
+def _horizontal_curve(rng, start: np.ndarray, step: float) -> np.ndarray:
+    """Points ``[P, 3]`` every ``step`` m from ``start`` (excluded) in its horizontal plane: 2-4
+    straight segments of 10-30 cm, or an arc of radius 5-20 cm over 90-270 deg."""
+    if rng.random() < 0.5:
+        corners = [start]
+        for _ in range(rng.integers(2, 5)):
+            phi = rng.uniform(0, 2 * np.pi)
+            corners.append(corners[-1] + rng.uniform(0.10, 0.30) * np.array([np.cos(phi), np.sin(phi), 0.0]))
+        pts = []
+        for a, b in zip(corners[:-1], corners[1:]):
+            k = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+            pts.append(a + (b - a) * np.arange(1, k + 1)[:, None] / k)
+        return np.concatenate(pts)
+    radius, phi0 = rng.uniform(0.05, 0.20), rng.uniform(0, 2 * np.pi)
+    sweep = rng.choice([-1.0, 1.0]) * np.radians(rng.uniform(90, 270))
+    centre = start - radius * np.array([np.cos(phi0), np.sin(phi0), 0.0])
+    k = int(np.ceil(abs(sweep) * radius / step))
+    phi = phi0 + sweep * np.arange(1, k + 1) / k
+    return centre + radius * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], -1)
+
+
+def level_plate(robot, count: int, seed: int, spacing: float = 0.05) -> list[np.ndarray]:
+    """Tray paths for the ball on the plate (module docstring): the plate level along horizontal
+    lines and arcs, waypoints every ``spacing`` rad; each checked level (0.5 deg) along its
+    spline and inside the limits shrunk by 0.05 rad. The iiwa's plate kinematics (``iiwa_ball``)."""
+    from mjx_pathtrack.paths import ball
+    from mjx_pathtrack.robots import registry as robots
+
+    if robot.name not in ("iiwa", "iiwa_ball"):
+        raise ValueError(f"{robot.name}: level-plate paths exist for the iiwa only")
+    plate = robots.load_robot("iiwa_ball", dt=0.1)
+    kin = ball.PlateKinematics(plate)
+    rng = np.random.default_rng(seed)
+    lo, hi = _limits(plate, 0.0)
+    lo, hi = lo + 0.05, hi - 0.05
+    cfg = ball.BallPathConfig()
+
+    def candidate():
+        q0 = _levelled_start(kin, rng, lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+        if q0 is None:
+            return None
+        centre, _ = kin.pose(q0)
+        dense = ball.track_curve(kin, q0, np.concatenate([centre[None], _horizontal_curve(rng, centre, 0.002)]),
+                                 cfg, lo, hi)
+        if dense is None:
+            return None
+        knots = _arc_resample(dense, spacing)
+        fit = fit_spline(knots)
+        q = fit.point_at(np.linspace(0.0, fit.length, max(int(fit.length / CHECK_STEP), 2) + 1))
+        if fit.length < 0.5 or np.any(q < lo) or np.any(q > hi) or kin.tilt_deg(q).max() > cfg.max_tilt_deg:
+            return None
+        return knots
+
+    return _collect(count, "level-plate", candidate)
+
+
 #: family name -> ``generator(robot, count, seed) -> [K_i, n_path] knot arrays``
 FAMILIES: dict[str, Callable] = {"cartesian_lines": cartesian_lines, "cartesian_circles": cartesian_circles,
                                  "pick_and_place": pick_and_place, "planner_dense": planner_dense,
                                  "teach_points": teach_points, "near_limits": near_limits}
+#: the families of the ball-on-plate task (level plate along the whole path)
+BALL_FAMILIES: dict[str, Callable] = {"level_plate": level_plate}

@@ -74,3 +74,24 @@ def test_a_user_ball_path_is_checked_for_a_level_plate(kin, test_paths):
     tilted[5, 5] += 0.2    # the wrist pitch at knot 5: the plate tips by ~11 deg there
     with pytest.raises(datasets.DatasetError, match=r"^mine: the plate tilts 1\d\.\d\d deg near knot 5 "):
         G.check_level(kin, tilted, name="mine")
+
+
+def test_whole_workspace_generator_covers_both_elbows_and_every_reach(kin):
+    """``whole_workspace()``: level-plate paths with the elbow bent either way and the plate from
+    near the base axis to full reach -- where the papers' generator never goes (elbow one way,
+    plate 0.43-0.70 m out) -- each level along its spline and inside the limits; the papers'
+    generator's committed paths stay reproducible with the defaults."""
+    robot = load_robot("iiwa_ball")
+    paths, counts = G.ball_paths(robot, 24, 5, G.whole_workspace())
+    assert len(paths) == 24 and counts["attempts"] >= 24
+    lim = load_robot("iiwa").limits
+    for knots in paths:
+        assert float(G.path_tilt_deg(kin, knots).max()) <= G.BallPathConfig.max_tilt_deg
+        datasets.validate_path(knots, lim)
+    elbow = np.array([p[0, 3] for p in paths])
+    assert np.any(elbow > 0.2) and np.any(elbow < -0.2)
+    radius = np.array([np.hypot(*kin.pose(q)[0][:2]) for p in paths for q in p])
+    assert radius.min() < 0.3 and radius.max() > 0.6
+    first, _ = G.ball_paths(robot, 2, 1)
+    committed = datasets.load_split("iiwa", "ball_balancing", "test")
+    assert all(np.array_equal(a, b) for a, b in zip(first, committed[:2]))

@@ -72,3 +72,24 @@ def test_cartesian_families_refuse_robots_with_two_hands():
 
     with pytest.raises(ValueError, match="one target site"):
         F.cartesian_lines(TwoHands(), 1, 0)
+
+
+def test_level_plate_family_carries_the_plate_level_and_horizontally(robot):
+    """Ball paths from outside the training generator: deterministic, level along the whole
+    spline (0.5 deg), the plate centre moving in a horizontal plane, inside the limits; elbows
+    of both signs over a handful of paths; refused for another robot."""
+    from mjx_pathtrack.paths import ball
+
+    paths = F.level_plate(robot, 6, 2)
+    again = F.level_plate(robot, 6, 2)
+    kin = ball.PlateKinematics(load_robot("iiwa_ball"))
+    for p, q in zip(paths, again):
+        np.testing.assert_array_equal(p, q)
+        assert _inside(robot, p)
+        assert float(ball.path_tilt_deg(kin, p).max()) <= ball.BallPathConfig.max_tilt_deg
+        heights = np.array([kin.pose(x)[0][2] for x in p])
+        assert np.ptp(heights) < 0.005   # a horizontal tray path (IK tolerance 1 mm)
+    elbows = np.array([p[0, 3] for p in F.level_plate(robot, 16, 9)])
+    assert np.any(elbows > 0) and np.any(elbows < 0)
+    with pytest.raises(ValueError, match="iiwa only"):
+        F.level_plate(load_robot("armar6"), 1, 0)

@@ -30,6 +30,41 @@ def test_random_paths_deterministic_and_inside_limits():
         assert np.all(np.linalg.norm(np.diff(knots, axis=0), axis=1) > 0)
 
 
+def _turning(knots: np.ndarray) -> np.ndarray:
+    """Turning angle per arc length [rad/rad] of the spline through ``knots``, every 0.01 rad."""
+    from mjx_pathtrack.core.spline_fit import fit_spline
+
+    fit = fit_spline(knots)
+    d = np.diff(fit.point_at(np.linspace(0.0, fit.length, int(fit.length / 0.01) + 1)), axis=0)
+    t = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return np.arccos(np.clip(np.sum(t[1:] * t[:-1], axis=1), -1.0, 1.0)) / 0.01
+
+
+def test_persistent_agent_holds_its_actions_and_draws_smoother_curves():
+    """``hold``: every setpoint inside the position and velocity limits; joints cruise near
+    their velocity limit far more often than with a new action every step, and the curves bend
+    less (the point of the persistent_random kind); a hold below one step is refused."""
+    import jax
+
+    lim = iiwa.joint_limits(0.1)
+    q = np.asarray(generate.random_motions(lim, jax.random.PRNGKey(0), 16, 60, 0.1, 24, hold=(2, 8)))
+    q_step = np.asarray(generate.random_motions(lim, jax.random.PRNGKey(0), 16, 60, 0.1, 24))
+    dt = 0.1 / 24
+    for motion in (q, q_step):
+        v = np.diff(motion, axis=1) / dt
+        assert np.all(motion <= np.asarray(lim.pos_max) + 1e-6) and np.all(motion >= np.asarray(lim.pos_min) - 1e-6)
+        assert np.all(np.abs(v) <= np.asarray(lim.vel) * (1 + 1e-3))
+    # near a velocity limit: the persistent agent cruises there far more often
+    speed = lambda m: np.abs(np.diff(m[:, ::24], axis=1) / 0.1) / np.asarray(lim.vel)  # noqa: E731
+    assert np.mean(speed(q) > 0.9) > 2 * np.mean(speed(q_step) > 0.9)
+    held = generate.random_paths(lim, 6, seed=5, steps=60, hold=(2, 8))
+    step = generate.random_paths(lim, 6, seed=5, steps=60)
+    assert np.median(np.concatenate([_turning(k) for k in held])) < \
+        0.7 * np.median(np.concatenate([_turning(k) for k in step]))
+    with pytest.raises(ValueError, match="hold"):
+        generate.random_motions(lim, jax.random.PRNGKey(0), 2, 4, 0.1, 24, hold=(0, 3))
+
+
 def test_colliding_motions_are_rejected():
     lim = iiwa.joint_limits(0.1)
     seen = []
@@ -59,3 +94,17 @@ def test_generate_dataset_writes_a_loadable_collision_free_dataset(tmp_path):
         generate.generate_dataset("iiwa", "random", 1, 1, root=tmp_path)
     with pytest.raises(datasets.DatasetError, match="unknown robot"):
         generate.generate_dataset("ur5", "random", 1, 1, root=tmp_path)
+
+
+def test_mixed_sources_written_before_the_persistent_part_regenerate_without_it():
+    """A mixed config.json without ``persistent_share`` (the committed iiwa mixed set) regenerates
+    with no persistent paths, whatever the current default; a recorded share is kept."""
+    old = datasets.read_config("iiwa", "mixed")["source"]
+    params = generate.source_params("mixed", old)
+    if "persistent_share" in old:
+        assert params["persistent_share"] == old["persistent_share"]
+    else:
+        assert params["persistent_share"] == 0.0
+    assert params["target_share"] == old["target_share"]
+    assert generate.source_params("mixed", {"target_share": 0.2, "persistent_share": 0.4}) == \
+        {"target_share": 0.2, "persistent_share": 0.4}
