@@ -38,7 +38,7 @@ REQUIRED_KEYS = {"robot": (str, "a string"), "joint_names": (list, "a list"), "p
 #: the environment settings (``EnvConfig`` fields) a manifest records, each with the value that a
 #: manifest written before the setting existed implies (None: the setting's default)
 MANIFEST_ENV_SETTINGS = {"knots_frame": "absolute", "end_braking": "at_end", "end_stop": "fastest",
-                         "end_knot_tolerance": None}
+                         "end_knot_tolerance": None, "observe_deviation": False}
 
 
 class ExportError(ValueError):
@@ -85,7 +85,7 @@ def observation_layout(n_joints: int, n_path: int, n_next: int,
 def env_observation_layout(env) -> list[dict]:
     """:func:`observation_layout` of a path-tracking environment (its task's blocks included)."""
     return observation_layout(env.limits.n_joints, len(env.path_joints), int(env.config.n_next),
-                              env.extra_observation_blocks())
+                              env.tracking_extra_blocks() + env.extra_observation_blocks())
 
 
 def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, robot_name: str,

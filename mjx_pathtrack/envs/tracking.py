@@ -39,6 +39,9 @@ from mjx_pathtrack.envs.executors import KinematicExecutor
 Array = jax.Array
 
 
+#: [rad] deviation shown as 1 in the observation's deviation block (``observe_deviation``): the
+#: papers' termination distance
+DEVIATION_SCALE = 0.25
 #: how the observation shows the next knots (:class:`EnvConfig` ``knots_frame``)
 KNOTS_FRAMES = ("absolute", "relative")
 #: when braking at the end of the path starts (:class:`EnvConfig` ``end_braking``)
@@ -82,6 +85,10 @@ class EnvConfig:
     ranges) or ``"relative"`` (knot minus current position, divided by ``n_next *
     max_dis_between_knots``): same size, but the policy need not learn the subtraction (docs/results.md
     "Findings of earlier recipes" measures the difference).
+    observe_deviation: append the deviation vector (reference point at the current arc position
+    minus the path joints' position, divided by ``DEVIATION_SCALE`` [rad], clipped) to the
+    observation: the offset from the path that the knot blocks show only at 1/(N max_dis) scale
+    (tracking task only).
     """
 
     dt: float = 0.1
@@ -106,6 +113,7 @@ class EnvConfig:
     end_braking: str = "at_end"
     end_stop: str = "fastest"
     end_knot_tolerance: float = 0.05
+    observe_deviation: bool = False
 
     def __post_init__(self):
         if self.end_braking not in END_BRAKING:
@@ -199,7 +207,13 @@ class PathTrackingEnv(Env):
     @property
     def observation_size(self) -> int:
         n, m, N = self.limits.n_joints, len(self.path_joints), self.config.n_next
-        return 3 * n + m * (N + 1) + 2 + N + sum(size for _, size in self.extra_observation_blocks())
+        return 3 * n + m * (N + 1) + 2 + N + sum(size for _, size in self.tracking_extra_blocks()) + \
+            sum(size for _, size in self.extra_observation_blocks())
+
+    def tracking_extra_blocks(self) -> list[tuple[str, int]]:
+        """Optional path-tracking blocks ``[(name, size), ...]`` after the papers' observation and
+        before a task's: the deviation vector with ``observe_deviation``."""
+        return [("deviation", len(self.path_joints))] if self.config.observe_deviation else []
 
     def extra_observation_blocks(self) -> list[tuple[str, int]]:
         """Named task-specific blocks ``[(name, size), ...]`` that :meth:`observe` appends after
@@ -497,6 +511,9 @@ class PathTrackingEnv(Env):
             (-1.0 + 2.0 * window.state_length / scale)[None],
             -1.0 + 2.0 * window.knot_distances / scale,
         ])
+        if cfg.observe_deviation:
+            offset = (S.point_at(path, track.s) - track.p[self.path_joints]) / DEVIATION_SCALE
+            obs = jnp.concatenate([obs, offset])
         return jnp.clip(obs, -1.0, 1.0)
 
 

@@ -189,7 +189,8 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic
         robot = robots.load_robot(config.robot, dt=config.env.dt)
         n = robot.n_joints
         m = int(np.sum(robot.path_mask))
-        obs_size = 3 * n + m * (config.env.n_next + 1) + 2 + config.env.n_next
+        obs_size = 3 * n + m * (config.env.n_next + 1) + 2 + config.env.n_next + \
+            (m if config.env.observe_deviation else 0)
     if config.task == "ball_on_plate":
         from mjx_pathtrack.envs.tasks.ball_on_plate import observation_size
 

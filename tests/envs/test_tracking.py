@@ -35,6 +35,31 @@ def test_observation_layout_matches_reference_size(env):
     assert bool(jnp.all(state.obs[7:21] == 0.0))
 
 
+def test_deviation_block_shows_the_offset_from_the_reference_point():
+    """``observe_deviation``: 7 more entries after the papers' 94, equal to (reference point at the
+    current arc position - position) / 0.25 rad (clipped), the rest unchanged; the export's layout
+    names the block before any task block."""
+    from mjx_pathtrack.deploy.export import env_observation_layout
+    from mjx_pathtrack.envs.tracking import DEVIATION_SCALE
+
+    paths = random_walk_paths()
+    plain = PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, EnvConfig())
+    env = PathTrackingEnv(iiwa.joint_limits(DT), paths, 0.5, EnvConfig(observe_deviation=True))
+    assert env.observation_size == 94 + 7
+    state = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    base = jax.jit(plain.reset)(jax.random.PRNGKey(3))
+    np.testing.assert_array_equal(np.asarray(state.obs[:94]), np.asarray(base.obs))
+    np.testing.assert_allclose(np.asarray(state.obs[94:]), 0.0, atol=1e-6)   # starts on the path
+    # move the robot off the path by hand: the block shows the offset, scaled and clipped
+    track = state.pipeline_state
+    shift = jnp.array([0.05, -0.1, 0.0, 0.2, 0.0, 0.0, -0.5])
+    moved = track._replace(p=track.p + shift)
+    obs = np.asarray(env.observe(moved))
+    np.testing.assert_allclose(obs[94:], np.clip(-np.asarray(shift) / DEVIATION_SCALE, -1, 1), atol=1e-5)
+    layout = env_observation_layout(env)
+    assert layout[-1] == {"name": "deviation", "start": 94, "size": 7}
+
+
 def test_random_rollouts_keep_limits_and_finite_rewards(env):
     """Batched rollouts with random and extreme actions: the commanded state stays inside all
     limits at every step and inside every step (analytic extrema), rewards are finite."""

@@ -693,3 +693,16 @@ def test_unknown_robot_and_bad_out_are_clear_cli_errors(tmp_path):
         assert result.returncode == 2, result.stderr[-2000:]
         assert message in result.stderr and "Traceback" not in result.stderr
         assert "Failed to import" not in result.stdout  # mujoco.mjx's Warp notices are silenced
+
+
+def test_observe_deviation_option_and_its_task_check():
+    """``--observe-deviation`` reaches the environment config and round-trips through config.json;
+    a task other than tracking is refused naming the option."""
+    import train as cli
+    from mjx_pathtrack.config.run import ConfigError, validate_config
+
+    _, cfg = cli.parse_args(["--observe-deviation"])
+    assert cfg.env.observe_deviation and not cli.parse_args([])[1].env.observe_deviation
+    assert TrainConfig.from_json(cfg.to_json()) == cfg
+    with pytest.raises(ConfigError, match="--observe-deviation: the deviation block is built for the tracking task"):
+        validate_config(cli.parse_args(["--task", "ball_on_plate", "--observe-deviation"])[1])
