@@ -1,7 +1,7 @@
 """Train a path-tracking policy with Brax PPO on batched environments.
 
-    python train.py                      # iiwa, random paths, CPU-sized default run (~6 min on 2 cores)
-    python train.py --preset paper       # the same recipe at 40 M steps, iiwa: alpha 2, 1000 train paths (~25 min on 2 cores)
+    python train.py                      # iiwa, mixed paths, CPU-sized default run (~8 min on 2 cores)
+    python train.py --preset paper       # the same recipe at 40 M steps, iiwa: alpha 2 (~30 min on 2 cores)
     python train.py --help               # all flags
     python train.py --out runs/x --resume  # continue after a kill from the last checkpoint
     python train.py --init-from runs/x --alpha 2.5 --init-noise-std 0.05 --out runs/y  # fine-tune x's policy
@@ -39,8 +39,8 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default=None, choices=sorted(RECIPES),
                         help="a training recipe's settings as the defaults of the other flags "
-                             "(mjx_pathtrack.config.presets.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2 and "
-                             "1000 train paths, ~25 min on 2 CPU cores)")
+                             "(mjx_pathtrack.config.presets.RECIPES; paper: the default recipe at 40 M steps, for the iiwa with alpha 2, "
+                             "~30 min on 2 CPU cores)")
     parser.add_argument("--no-ball-reward", action="store_true",
                         help="ball_on_plate: train without R_ball (and without the ball sensor), i.e. --ball-reward 0")
     parser.add_argument("--out", default=None,
