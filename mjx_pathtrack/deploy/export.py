@@ -1,10 +1,12 @@
 """Export a trained policy as a serialized jitted function, and load it without the training stack.
 
 An export directory holds ``policy.jaxexport`` -- the deterministic policy (observation
-normalisation, network, tanh mean) serialized with ``jax.export`` for any batch size -- and
-``manifest.json`` (robot, joint names, limits, Δt, N knots, observation layout, shapes, package
-and JAX versions). :func:`load_policy` needs only ``jax`` and ``numpy``: no Brax, no Flax, no
-training code. Files are written atomically.
+normalisation, network, tanh mean) serialized with ``jax.export`` for any batch size --,
+``policy.onnx`` -- the same function as an ONNX graph, checked against it
+(:mod:`~mjx_pathtrack.deploy.onnx_policy`) -- and ``manifest.json`` (robot, joint names, limits,
+Δt, N knots, observation layout, shapes, package and JAX versions). :func:`load_policy` needs only
+``jax`` and ``numpy``: no Brax, no Flax, no training code; the ONNX file needs only
+``onnxruntime``. Files are written atomically.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -21,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack.core.knot_rule import KnotRule
+from mjx_pathtrack.deploy.onnx_policy import ONNX_FILE
 from mjx_pathtrack.fileio import atomic_write_bytes
 
 FORMAT_VERSION = 1
@@ -88,12 +92,42 @@ def env_observation_layout(env) -> list[dict]:
                               env.tracking_extra_blocks() + env.extra_observation_blocks())
 
 
+def _checked_onnx(policy, exported: jax.export.Exported, obs_size: int) -> tuple[bytes, dict]:
+    """``(model bytes, manifest entry)`` of ``policy`` as ONNX, checked against the jax.export
+    ``exported`` (:mod:`~mjx_pathtrack.deploy.onnx_policy`); :class:`ExportError` if they differ."""
+    from mjx_pathtrack.deploy import onnx_policy as O
+
+    try:
+        model = O.policy_to_onnx(policy, obs_size)
+    except O.OnnxError as e:
+        raise ExportError(str(e)) from e
+    diff = O.max_difference(O.OnnxPolicy(model), lambda obs: np.asarray(exported.call(jnp.asarray(obs))))
+    if not diff <= O.TOLERANCE:
+        raise ExportError(f"the ONNX graph differs from the jax.export policy by {diff:.2e} > {O.TOLERANCE:.0e} "
+                          f"on {O.CHECK_OBSERVATIONS} observations")
+    return model, {"file": ONNX_FILE, "input": O.INPUT_NAME, "output": O.OUTPUT_NAME,
+                   "checked_observations": O.CHECK_OBSERVATIONS, "max_abs_difference": diff}
+
+
+def _onnx_or_reason(policy, exported: jax.export.Exported, obs_size: int) -> tuple[bytes | None, dict]:
+    """:func:`_checked_onnx`, or ``(None, {"file": None, "reason": ...})`` where it fails: the
+    jax.export policy stands without an ONNX graph, and the manifest says why."""
+    try:
+        return _checked_onnx(policy, exported, obs_size)
+    except ExportError as e:
+        print(f"export: no {ONNX_FILE}: {e}", file=sys.stderr, flush=True)
+        return None, {"file": None, "reason": str(e)}
+
+
 def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, robot_name: str,
-                  joint_names, run_config: str | None = None) -> Path:
+                  joint_names, run_config: str | None = None, onnx: bool = True) -> Path:
     """Write ``out_dir/{policy.jaxexport, manifest.json}`` for Brax PPO ``params`` on ``env``
     (a :class:`~mjx_pathtrack.envs.tracking.PathTrackingEnv`). ``run_config``: the training run's
     configuration as JSON text (``TrainConfig.to_json()``), recorded as ``run_config`` so that
-    ``evaluate.py`` rebuilds the task's environment from an export. Returns ``out_dir``."""
+    ``evaluate.py`` rebuilds the task's environment from an export. ``onnx``: also
+    ``policy.onnx``, the same policy as an ONNX graph, written only if jax2onnx converts it and
+    it agrees with the jax.export policy within 1e-5 on 10,000 observations; the manifest's
+    ``onnx`` entry gives the figure, or why there is no file. Returns ``out_dir``."""
     from mjx_pathtrack import __version__
 
     out = Path(out_dir)
@@ -132,7 +166,12 @@ def export_policy(out_dir: str | os.PathLike, make_inference_fn, params, env, ro
     }
     if run_config is not None:
         manifest["run_config"] = json.loads(run_config)
+    onnx_model = None
+    if onnx:
+        onnx_model, manifest["onnx"] = _onnx_or_reason(policy, exported, obs_size)
     atomic_write_bytes(out / POLICY_FILE, bytes(exported.serialize()))
+    if onnx_model is not None:
+        atomic_write_bytes(out / ONNX_FILE, onnx_model)
     atomic_write_bytes(out / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
     return out
 
@@ -185,6 +224,22 @@ class ExportedPolicy:
             raise ExportError("observation contains NaN or inf")
         action = np.asarray(self._exported.call(jnp.asarray(batch)))
         return action[0] if single else action
+
+
+def attach_onnx(path: str | os.PathLike, policy) -> dict:
+    """Add ``policy.onnx`` to the export directory ``path`` written before exports held one:
+    ``policy`` (jittable ``obs [B, obs_size] -> actions [B, n]`` in [-1, 1], rebuilt from the
+    run's parameters) converted and checked against the directory's own ``policy.jaxexport``,
+    the file written if it agrees within 1e-5, and the manifest's ``onnx`` entry (the figure, or
+    why there is no file) in any case. Returns that entry."""
+    root = Path(path)
+    loaded = load_policy(root)
+    model, entry = _onnx_or_reason(policy, loaded._exported, loaded.observation_size)
+    if model is not None:
+        atomic_write_bytes(root / ONNX_FILE, model)
+    manifest = {**loaded.manifest, "onnx": entry}
+    atomic_write_bytes(root / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
+    return entry
 
 
 def load_policy(path: str | os.PathLike) -> ExportedPolicy:

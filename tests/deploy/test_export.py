@@ -142,3 +142,68 @@ def test_traced_call_leaves_the_mjx_physics_beside_it_unchanged(exported):
     assert np.abs(np.asarray(alone) - np.asarray(setpoint)).max() < 1e-3
     with pytest.raises(ExportError, match="shape"):
         policy.traced_call(obs[0])
+
+
+def test_export_writes_an_onnx_graph_that_agrees_with_the_network(exported):
+    """``policy.onnx`` (jax2onnx, observation -> action) gives the in-process network's clipped
+    actions within 1e-5 on 10,000 fresh observations, as the manifest's figure claims."""
+    from mjx_pathtrack.deploy.onnx_policy import OnnxPolicy
+
+    out, inference, env = exported
+    entry = load_policy(out).manifest["onnx"]
+    assert entry["file"] == "policy.onnx" and entry["checked_observations"] == 10_000
+    assert 0.0 <= entry["max_abs_difference"] <= 1e-5
+    onnx = OnnxPolicy(out / "policy.onnx")
+    obs = np.random.default_rng(7).uniform(-1, 1, (10_000, env.observation_size)).astype(np.float32)
+    raw = np.asarray(inference(jnp.asarray(obs), jax.random.PRNGKey(0))[0])
+    assert np.abs(raw).max() > 1.0   # the graph's clipping is exercised
+    np.testing.assert_allclose(onnx(obs), np.clip(raw, -1.0, 1.0), atol=1e-5, rtol=0)
+    np.testing.assert_allclose(onnx(obs[3]), np.clip(raw[3], -1.0, 1.0), atol=1e-5, rtol=0)
+
+
+def test_onnx_policy_runs_with_numpy_and_onnxruntime_alone(exported):
+    """The README's deployment example: no JAX, no package, only numpy and onnxruntime."""
+    out, inference, env = exported
+    code = (f"import sys; sys.modules['jax'] = None; sys.modules['mjx_pathtrack'] = None\n"
+            f"import numpy as np, onnxruntime as ort\n"
+            f"session = ort.InferenceSession({str(out / 'policy.onnx')!r})\n"
+            f"obs = np.linspace(-1, 1, 2 * {env.observation_size}, dtype=np.float32).reshape(2, -1)\n"
+            f"print(repr(session.run(['action'], {{'observation': obs}})[0].tolist()))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    actions = np.array(eval(result.stdout.strip().splitlines()[-1]))
+    obs = np.linspace(-1, 1, 2 * env.observation_size, dtype=np.float32).reshape(2, -1)
+    expected = np.clip(np.asarray(inference(jnp.asarray(obs), jax.random.PRNGKey(0))[0]), -1.0, 1.0)
+    np.testing.assert_allclose(actions, expected, atol=1e-5, rtol=0)
+
+
+def test_an_onnx_graph_that_disagrees_is_not_written_and_the_manifest_says_why(tmp_path, monkeypatch):
+    """A graph off by more than 1e-5 never reaches the export directory; the jax.export policy
+    does, with the reason in the manifest. A policy jax2onnx cannot convert: the same."""
+    from mjx_pathtrack.deploy import onnx_policy
+
+    env = PathTrackingEnv(iiwa.joint_limits(0.1), random_walk_paths(n_paths=2), 0.5, EnvConfig())
+    factory = ppo_networks_factory(TrainConfig().replace(policy_layers=(8,), value_layers=(8,)).network)
+    nets = factory(env.observation_size, env.action_size, preprocess_observations_fn=running_statistics.normalize)
+    normalizer = running_statistics.init_state(specs.Array((env.observation_size,), jnp.dtype("float32")))
+    params = (normalizer, nets.policy_network.init(jax.random.PRNGKey(0)))
+    monkeypatch.setattr(onnx_policy, "max_difference", lambda *a, **k: 3e-4)
+    out = export_policy(tmp_path / "export", ppo_networks.make_inference_fn(nets), params, env, "iiwa", iiwa.JOINT_NAMES)
+    assert not (out / "policy.onnx").exists()
+    entry = load_policy(out).manifest["onnx"]
+    assert entry["file"] is None and "differs from the jax.export policy by 3.00e-04" in entry["reason"]
+
+    def unconvertible(*args, **kwargs):
+        raise onnx_policy.OnnxError("jax2onnx cannot convert this policy: TypeError: a construct")
+
+    monkeypatch.setattr(onnx_policy, "policy_to_onnx", unconvertible)
+    out = export_policy(tmp_path / "export2", ppo_networks.make_inference_fn(nets), params, env, "iiwa", iiwa.JOINT_NAMES)
+    assert not (out / "policy.onnx").exists()
+    assert "cannot convert" in load_policy(out).manifest["onnx"]["reason"]
+    from mjx_pathtrack.deploy.export import attach_onnx
+
+    monkeypatch.undo()
+    entry = attach_onnx(out, jax.jit(lambda obs: jnp.clip(ppo_networks.make_inference_fn(nets)(params, True)(
+        obs, jax.random.PRNGKey(0))[0], -1.0, 1.0)))     # the same network, attached afterwards
+    assert (out / "policy.onnx").is_file() and entry["max_abs_difference"] <= 1e-5
+    assert load_policy(out).manifest["onnx"] == entry

@@ -41,6 +41,22 @@ def test_the_run_directory_and_its_export_give_the_same_actions(run):
     assert np.std(a_run) > 0.05  # a trained policy, not a constant
 
 
+@pytest.mark.parametrize("run", POLICIES, ids=lambda p: p.name)
+def test_the_shipped_onnx_graph_gives_the_exports_actions(run):
+    """``export/policy.onnx`` acts as ``policy.jaxexport`` within 1e-5 on 10,000 observations;
+    a policy without one says why in its manifest (the iiwa and ball policies must have one)."""
+    from mjx_pathtrack.deploy.onnx_policy import OnnxPolicy, max_difference
+
+    exported = load_policy(run / "export")
+    entry = exported.manifest.get("onnx")
+    assert entry is not None, f"{run.name}: no onnx entry (python scripts/attach_onnx.py {run.relative_to(REPO)})"
+    if entry["file"] is None:
+        assert run.name not in ("iiwa", "ball_on_plate") and entry["reason"]
+        assert not (run / "export" / "policy.onnx").exists()
+        return
+    assert max_difference(OnnxPolicy(run / "export" / entry["file"]), exported, seed=11) <= 1e-5
+
+
 def _evaluate(tmp_path, *args):
     out = tmp_path / "eval"
     subprocess.run([sys.executable, "evaluate.py", *args, "--no-toppra", "--timing-decisions", "0", "--out", str(out)],
