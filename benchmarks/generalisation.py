@@ -20,6 +20,11 @@ Rows, per policy (``evaluate.py``'s machinery, deterministic policy unless ``--s
   limits), made by generators independent of the training ones and given as user paths
   (``evaluate.py --paths``): whole paths, re-knotted, deviations measured against the user's curve.
 
+A ball-on-plate policy gets its own test split (whole paths) and the ball families instead
+(``level_plate``: an independent tray-path generator anywhere in the workspace;
+``papers_ball_region``: the papers' start region with its reflections), in the full-arm MJX
+scene (``--ball-physics``), with the ball's falls against ``--max-falls-own`` / ``--max-falls``.
+
 Per row: end reached, ends on the deviation limit, duration ratio to TOPP-RA (``--jerk-optimum``:
 also TOPP3), joint deviation mean / max / final, Cartesian mean, the largest distance between
 the user's curve and the policy's (re-knotting), and the limit audit. The floors of the issue
@@ -32,6 +37,7 @@ exit status is 1 if one is missed. Writes ``generalisation.json`` and ``generali
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -65,6 +71,8 @@ def parse_args(argv=None):
     p.add_argument("--max-ratio", type=float, default=1.35, help="floor of the mean duration ratio to TOPP-RA")
     p.add_argument("--max-falls-own", type=float, default=0.01, help="ball on plate: falls on its own test paths")
     p.add_argument("--max-falls", type=float, default=0.02, help="ball on plate: falls on every other row")
+    p.add_argument("--ball-physics", default="arm", choices=("arm", "plate", "rolling"),
+                   help="ball on plate: the scene of every row (default the full-arm MJX scene)")
     p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "generalisation"))
     args = p.parse_args(argv)
     if args.count < 1:
@@ -201,6 +209,8 @@ def main(argv=None) -> int:
     results, failed = {}, False
     for src in args.sources:
         source = R.load_policy_source(src, deterministic=not args.stochastic)
+        if source.config.task == "ball_on_plate":
+            source = dataclasses.replace(source, config=source.config.replace(ball_physics=args.ball_physics))
         cfg = source.config
         robot = robots.load_robot(cfg.robot, dt=cfg.env.dt)
         name = f"{src} ({'sampled' if args.stochastic else 'deterministic'})"

@@ -375,9 +375,24 @@ def level_plate(robot, count: int, seed: int, spacing: float = 0.05) -> list[np.
     return _collect(count, "level-plate", candidate)
 
 
+def papers_ball_region(robot, count: int, seed: int) -> list[np.ndarray]:
+    """Ball paths of the training generator with the papers' start poses (:mod:`..paths.ball`,
+    default :class:`~mjx_pathtrack.paths.ball.BallPathConfig`: ``q2`` in [0.3, 0.9], ``q4`` in
+    [-1.6, -0.8]), path ``i`` multiplied by reflection vector ``i % 4``: the part of the
+    workspace the papers' ball policies cover, for a policy trained on another part (not an
+    independent generator: a region check)."""
+    from mjx_pathtrack.paths import ball
+    from mjx_pathtrack.robots import registry as robots
+
+    if robot.name not in ("iiwa", "iiwa_ball"):
+        raise ValueError(f"{robot.name}: level-plate paths exist for the iiwa only")
+    paths, _ = ball.ball_paths(robots.load_robot("iiwa_ball", dt=0.1), count, seed)
+    return [p * np.asarray(ball.REFLECTION_VECTORS[i % len(ball.REFLECTION_VECTORS)]) for i, p in enumerate(paths)]
+
+
 #: family name -> ``generator(robot, count, seed) -> [K_i, n_path] knot arrays``
 FAMILIES: dict[str, Callable] = {"cartesian_lines": cartesian_lines, "cartesian_circles": cartesian_circles,
                                  "pick_and_place": pick_and_place, "planner_dense": planner_dense,
                                  "teach_points": teach_points, "near_limits": near_limits}
 #: the families of the ball-on-plate task (level plate along the whole path)
-BALL_FAMILIES: dict[str, Callable] = {"level_plate": level_plate}
+BALL_FAMILIES: dict[str, Callable] = {"level_plate": level_plate, "papers_ball_region": papers_ball_region}

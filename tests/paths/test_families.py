@@ -93,3 +93,19 @@ def test_level_plate_family_carries_the_plate_level_and_horizontally(robot):
     assert np.any(elbows > 0) and np.any(elbows < 0)
     with pytest.raises(ValueError, match="iiwa only"):
         F.level_plate(load_robot("armar6"), 1, 0)
+
+
+def test_papers_ball_region_family_reflects_the_training_generator_and_stays_level(robot):
+    """The papers' ball region: the training generator's paths (papers' start poses), path ``i``
+    multiplied by reflection vector ``i % 4``, each level along its spline and inside the limits."""
+    from mjx_pathtrack.paths import ball
+
+    paths = F.papers_ball_region(robot, 4, 3)
+    plain, _ = ball.ball_paths(load_robot("iiwa_ball", dt=0.1), 4, 3)
+    kin = ball.PlateKinematics(load_robot("iiwa_ball"))
+    for i, (p, q) in enumerate(zip(paths, plain)):
+        np.testing.assert_array_equal(p, q * np.asarray(ball.REFLECTION_VECTORS[i]))
+        assert _inside(robot, p)
+        assert float(ball.path_tilt_deg(kin, p).max()) <= ball.BallPathConfig.max_tilt_deg
+    with pytest.raises(ValueError, match="iiwa only"):
+        F.papers_ball_region(load_robot("armar6"), 1, 0)
