@@ -258,14 +258,25 @@ def reflect_paths(paths, vectors=REFLECTION_VECTORS) -> list[np.ndarray]:
     return out
 
 
+#: ``workspace`` name -> the start-pose settings of :func:`generate_ball_dataset`
+WORKSPACES = {"papers": BallPathConfig, "whole": whole_workspace}
+
+
 def generate_ball_dataset(robot: str = "iiwa", num_train: int = 200, num_test: int = 200, seed: int = 0,
                           root=None, overwrite: bool = False, dt: float = 0.1,
-                          cfg: BallPathConfig = BallPathConfig()):
+                          cfg: BallPathConfig | None = None, workspace: str = "papers"):
     """Write ``<root>/<robot>/ball_balancing/{train,test}.npz, config.json`` (train split from
     ``seed``, test from ``seed + 1``). ``robot`` names the dataset folder (the iiwa); the plate
-    kinematics come from ``iiwa_ball``. Returns the directory."""
+    kinematics come from ``iiwa_ball``. ``cfg``: the generator's settings, by default those of
+    ``workspace`` (:data:`WORKSPACES`: ``"papers"``, the papers' start poses, or ``"whole"``,
+    :func:`whole_workspace`). Returns the directory."""
     from mjx_pathtrack.paths import datasets
     from mjx_pathtrack.robots import registry as robots
+
+    if cfg is None:
+        if workspace not in WORKSPACES:
+            raise datasets.DatasetError(f"unknown ball workspace {workspace!r}; known: {', '.join(WORKSPACES)}")
+        cfg = WORKSPACES[workspace]()
 
     if robot != "iiwa":
         raise datasets.DatasetError(f"ball_balancing paths exist for the iiwa only, not {robot!r}")

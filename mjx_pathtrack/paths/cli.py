@@ -1,6 +1,7 @@
 """Command line of the path datasets: ``python -m mjx_pathtrack.paths {generate,stats,import}``.
 
     python -m mjx_pathtrack.paths generate --robot iiwa --kind random --num-train 200 --num-test 200
+    python -m mjx_pathtrack.paths generate --kind ball_balancing --param workspace=whole --root /tmp/splines
     python -m mjx_pathtrack.paths stats [--robot iiwa] [--kind random] [--root splines]
     python -m mjx_pathtrack.paths import FILE --robot iiwa --kind my_paths [--split test]
 """
@@ -8,12 +9,27 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Sequence
 
 from mjx_pathtrack.paths.datasets import (DEFAULT_ROOT, SPLITS, DatasetError, import_paths, known_robots, load_split,
                                           split_stats, stats)
 from mjx_pathtrack.paths.generate import generate_dataset
+
+
+def _params(entries: list[str]) -> dict:
+    """``--param NAME=VALUE`` entries as generator keyword arguments (VALUE as JSON, else text)."""
+    params = {}
+    for entry in entries:
+        name, sep, value = entry.partition("=")
+        if not sep or not name.strip():
+            raise DatasetError(f"--param must be NAME=VALUE, got {entry!r}")
+        try:
+            params[name.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            params[name.strip()] = value
+    return params
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -44,11 +60,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_gen.add_argument("--seed", type=int, default=0)
     p_gen.add_argument("--root", default=None)
     p_gen.add_argument("--overwrite", action="store_true")
+    p_gen.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                       help="a parameter of the kind's generator (VALUE read as JSON, else as text), e.g. "
+                            "--param persistent_share=0.333 (mixed), --param workspace=whole (ball_balancing)")
     args = parser.parse_args(argv)
     try:
         if args.command == "generate":
             directory = generate_dataset(args.robot, args.kind, args.num_train, args.num_test, args.seed,
-                                         args.root, args.overwrite)
+                                         args.root, args.overwrite, **_params(args.param))
             for name, st in stats(args.robot, args.kind, args.root).items():
                 print(st.line(name))
             print(f"written to {directory}")

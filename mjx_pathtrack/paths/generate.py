@@ -181,10 +181,12 @@ def _smooth_target_point_split(robot, count: int, seed: int, steps: int = 170, d
 
 
 def _mixed_split(robot, count: int, seed: int, dt: float = 0.1, max_spacing: float = 0.3,
-                 target_share: float = 1 / 3, persistent_share: float = 1 / 3):
+                 target_share: float = 0.5, persistent_share: float = 0.0):
     """``mixed`` kind: the training distribution of the default policies, interleaved:
     smooth target-point paths (:func:`_smooth_target_point_split`, ``target_share``),
-    persistent random-agent paths (:func:`_persistent_random_split`, ``persistent_share``) and
+    persistent random-agent paths (:func:`_persistent_random_split`, ``persistent_share``; none
+    by default: a third of them did not make the paper-preset policy better on the
+    generalisation families, docs/results.md "Any path a user brings") and
     step-wise random-agent paths (:func:`_random_split`, the rest); every knot interval longer than
     ``max_spacing`` [rad] split (:func:`~mjx_pathtrack.core.knot_rule.cap_spacing`). Knots dense
     in bends (curvature rule) and never sparser than ``max_spacing`` on smooth stretches: a
@@ -288,6 +290,10 @@ def generate_dataset(robot: str, kind: str = "random", num_train: int = 200, num
     if kind == "ball_balancing":  # its own config.json (reflection vectors, plate settings)
         from mjx_pathtrack.paths.ball import generate_ball_dataset
 
+        unknown = set(params) - {"dt", "cfg", "workspace"}
+        if unknown:
+            raise datasets.DatasetError(f"ball_balancing: unknown generation parameter(s) {sorted(unknown)}; "
+                                        f"known: ['dt', 'workspace']")
         return generate_ball_dataset(robot, num_train, num_test, seed, root, overwrite, **params)
     if robot not in robots.known_robots():
         raise datasets.DatasetError(f"unknown robot {robot!r}; known: {', '.join(robots.known_robots())}")

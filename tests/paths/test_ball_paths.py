@@ -95,3 +95,28 @@ def test_whole_workspace_generator_covers_both_elbows_and_every_reach(kin):
     first, _ = G.ball_paths(robot, 2, 1)
     committed = datasets.load_split("iiwa", "ball_balancing", "test")
     assert all(np.array_equal(a, b) for a, b in zip(first, committed[:2]))
+
+
+def test_the_command_line_generates_the_whole_workspace_set(tmp_path):
+    """``generate --kind ball_balancing --param workspace=whole``: the same paths as
+    ``generate_ball_dataset(cfg=whole_workspace())``, the settings recorded; unknown workspaces
+    and parameters are named."""
+    import subprocess
+    import sys
+
+    run = lambda *a: subprocess.run([sys.executable, "-m", "mjx_pathtrack.paths", "generate", "--kind",  # noqa: E731
+                                     "ball_balancing", "--num-train", "0", "--num-test", "2", "--seed", "4", *a],
+                                    capture_output=True, text=True)
+    out = run("--root", str(tmp_path / "cli"), "--param", "workspace=whole")
+    assert out.returncode == 0, out.stderr
+    G.generate_ball_dataset("iiwa", 0, 2, 4, root=tmp_path / "py", cfg=G.whole_workspace())
+    for x, y in zip(*(datasets.load_split("iiwa", "ball_balancing", "test", tmp_path / r) for r in ("cli", "py"))):
+        np.testing.assert_array_equal(x, y)
+    settings = datasets.read_config("iiwa", "ball_balancing", tmp_path / "cli")["source"]["settings"]
+    assert settings["q2_range"] == list(G.whole_workspace().q2_range)
+    out = run("--root", str(tmp_path / "bad"), "--param", "workspace=moon")
+    assert out.returncode == 2 and "unknown ball workspace 'moon'" in out.stderr
+    out = run("--root", str(tmp_path / "bad"), "--param", "elbow=1")
+    assert out.returncode == 2 and "unknown generation parameter(s) ['elbow']" in out.stderr
+    out = run("--root", str(tmp_path / "bad"), "--param", "workspace")
+    assert out.returncode == 2 and "--param must be NAME=VALUE" in out.stderr

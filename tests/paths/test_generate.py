@@ -108,3 +108,14 @@ def test_mixed_sources_written_before_the_persistent_part_regenerate_without_it(
     assert params["target_share"] == old["target_share"]
     assert generate.source_params("mixed", {"target_share": 0.2, "persistent_share": 0.4}) == \
         {"target_share": 0.2, "persistent_share": 0.4}
+
+
+def test_mixed_with_a_persistent_share_interleaves_the_parts_and_caps_the_spacing():
+    paths, source = generate.generate_split("iiwa", "mixed", 4, 3, target_share=0.0, persistent_share=0.5)
+    assert len(paths) == 4 and source["persistent_share"] == 0.5
+    assert source["parts"]["persistent_random"]["hold"] == list(generate.PERSISTENT_HOLD)
+    assert source["parts"]["smooth_target_point"] == {}
+    for p in paths:
+        assert np.linalg.norm(np.diff(p, axis=0), axis=1).max() <= 0.3
+    with pytest.raises(datasets.DatasetError, match="shares"):
+        generate.generate_split("iiwa", "mixed", 2, 0, target_share=0.7, persistent_share=0.5)
