@@ -57,8 +57,8 @@ def test_persistent_agent_holds_its_actions_and_draws_smoother_curves():
     # near a velocity limit: the persistent agent cruises there far more often
     speed = lambda m: np.abs(np.diff(m[:, ::24], axis=1) / 0.1) / np.asarray(lim.vel)  # noqa: E731
     assert np.mean(speed(q) > 0.9) > 2 * np.mean(speed(q_step) > 0.9)
-    held = generate.random_paths(lim, 6, seed=5, steps=60, hold=(2, 8))
-    step = generate.random_paths(lim, 6, seed=5, steps=60)
+    held = generate.random_paths(lim, 4, seed=5, steps=40, hold=(2, 8))
+    step = generate.random_paths(lim, 4, seed=5, steps=40)
     assert np.median(np.concatenate([_turning(k) for k in held])) < \
         0.7 * np.median(np.concatenate([_turning(k) for k in step]))
     with pytest.raises(ValueError, match="hold"):
