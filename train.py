@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 import mjx_pathtrack
 
@@ -137,7 +138,22 @@ def main(argv=None) -> int:
     except TrainingDiverged as e:
         print(f"train.py: {e}", file=sys.stderr)
         return 1
+    print(run_summary(Path(args.out)), flush=True)
     return 0
+
+
+def run_summary(run: Path) -> str:
+    """What a finished run directory holds, and the commands that use it."""
+    def held(names):
+        return ", ".join(n + ("/" if (run / n).is_dir() else "") for n in names if (run / n).exists())
+
+    lines = [f"\nrun directory {run}: {held(['config.json', 'progress.csv', 'tensorboard', 'checkpoints', 'params.pkl', 'report.json', 'export'])}",
+             f"  export/: {held(['export/manifest.json', 'export/policy.jaxexport', 'export/policy.onnx']).replace('export/', '')}",
+             f"  python evaluate.py {run}/export                      # the deployed policy on the test paths",
+             f"  python evaluate.py {run} --stochastic                # the sampled policy beside it",
+             f"  python benchmarks/generalisation.py {run}/export     # on path families it never saw",
+             f"  tensorboard --logdir {run}/tensorboard"]
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -257,6 +257,12 @@ def test_train_cli_on_two_forced_host_devices(tmp_path):
     assert "evaluation after training" in result.stdout
     assert (tmp_path / "run" / "params.pkl").is_file()
     assert any(cache.iterdir())  # compiled programs went to the persistent cache
+    # the last lines list what the run holds and how to use it
+    run = tmp_path / "run"
+    assert f"run directory {run}: config.json, progress.csv, tensorboard/, checkpoints/, params.pkl, report.json, " \
+           f"export/" in result.stdout
+    assert "export/: manifest.json, policy.jaxexport, policy.onnx" in result.stdout
+    assert f"python evaluate.py {run}/export" in result.stdout.splitlines()[-4]
 
 
 def test_compilation_cache_is_opt_in_and_a_bad_directory_is_a_clear_error(tmp_path):
