@@ -74,6 +74,7 @@ def test_the_shipped_armar4_policy_tracks_target_point_paths(tmp_path):
     assert m["limit_audit"]["ok"]
 
 
+@pytest.mark.slow
 def test_the_shipped_ball_policy_balances_the_ball_on_test_paths(tmp_path):
     """16 whole test paths in the rolling-ball (training) scene, deterministic export: the full
     evaluation (200 paths, docs/results.md) drops the ball in 0.5 % and reaches the end in 99.5 %."""
@@ -84,6 +85,7 @@ def test_the_shipped_ball_policy_balances_the_ball_on_test_paths(tmp_path):
     assert m["limit_audit"]["ok"]
 
 
+@pytest.mark.slow
 def test_the_shipped_armar4_balance_policy_tracks_standing_on_its_legs(tmp_path):
     """8 test sub-paths standing on the floor with controlled legs (the leg prior included in the
     export), deterministic: the full evaluation (200 sub-paths, docs/results.md "Table VIII")
@@ -104,6 +106,7 @@ def test_the_shipped_iiwa_policy_tracks_its_test_paths(tmp_path):
     assert m["limit_audit"]["ok"]
 
 
+@pytest.mark.slow
 def test_one_curve_gives_one_result_whatever_its_knots(tmp_path):
     """The same 16 test curves of the shipped iiwa policy, whole, given with their own knots,
     with waypoints every 0.03 rad, every third of those and uniformly every 0.15 rad: re-knotted

@@ -422,6 +422,7 @@ def _stop_rollout(dt: float, end_stop: str, jerk_factor: float = 1.0, batch: int
     return stopped & done, track, ends, worst
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dt, jerk_factor", [(0.1, 1.0), (0.05, 1.0), (0.1, 0.25), (0.4, 1.0)])
 def test_end_knot_stop_rests_at_the_end_knot_within_every_limit(dt, jerk_factor):
     """EnvConfig.end_stop="end_knot" after random and bang-bang motion, at short and long dt and

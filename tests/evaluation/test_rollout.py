@@ -207,6 +207,7 @@ def tiny_run(tmp_path_factory):
     return run, _write_run(run)
 
 
+@pytest.mark.slow
 def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     run, _ = tiny_run
     out = tmp_path / "out"
@@ -291,6 +292,7 @@ def test_stochastic_policy_samples_around_the_deterministic_mean(tiny_run):
     assert abs(noise.mean()) < 0.05 and 0.5 * cfg.network.init_noise_std < noise.std() < 2 * cfg.network.init_noise_std
 
 
+@pytest.mark.slow
 def test_floating_base_runs_a_plain_armar4_tracking_policy_on_the_floor(tiny_run, tmp_path):
     """``--floating-base`` (the papers' Table VIII "no balancing reward" row): the tracking run's
     policy (226 observations, no pelvis) drives the welded-legs robot standing on the floor at 80 Hz;
@@ -345,6 +347,7 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     assert "--terminate-deviation must be > 0" in err
 
 
+@pytest.mark.slow
 def test_user_paths_are_reknotted_and_measured_against_the_users_curve(tiny_run, tmp_path, capsys):
     """evaluate.py --paths: planner-dense waypoints of two committed test paths are re-knotted by
     the run's knot rule (its dataset's), and the deviations are measured against the user's curve:

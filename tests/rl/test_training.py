@@ -180,6 +180,7 @@ def test_init_from_a_run_with_fewer_observations_adds_them_with_zero_weights(tin
         warm.warm_start(learner, source, 1, renamed)
 
 
+@pytest.mark.slow
 def test_init_from_a_run_with_fewer_joints_fits_the_new_one_to_hold_still(tiny_run, tmp_path):
     """A source that drove one joint fewer (as the fixed-legs ARMAR-4 policy for controlled legs):
     the source's joints act as before whatever the new joint's inputs, the new joint's mean action
@@ -247,6 +248,7 @@ def test_init_from_refuses_other_networks_and_missing_runs(tiny_run, tmp_path):
     assert not (tmp_path / "missing").exists()
 
 
+@pytest.mark.slow
 def test_train_cli_on_two_forced_host_devices(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     cache = tmp_path / "jax_cache"
@@ -478,6 +480,7 @@ def test_noise_std_schedule_is_geometric_from_the_initial_to_the_final_std():
     assert ppo.noise_std(TrainConfig().replace(final_noise_std=None).network, 0.3) is None  # learned std: no schedule
 
 
+@pytest.mark.slow
 def test_learning_rate_schedule_is_geometric_and_scales_the_update():
     """``final_learning_rate``: geometric from the rate to the final one (constant when unset); the
     iteration's step scales with it: at scale 0 the parameters do not move, at 1 they do."""
@@ -500,6 +503,7 @@ def test_learning_rate_schedule_is_geometric_and_scales_the_update():
     assert not all(jax.tree.leaves(changed))
 
 
+@pytest.mark.slow
 def test_a_scheduled_std_is_not_learned_and_ends_at_the_schedule(tmp_path):
     """The std the run ends with is the schedule's value at the start of the last iteration (not
     what Adam would have made of it), in the exported policy's parameters too."""
@@ -547,6 +551,7 @@ def test_noise_scale_option_from_the_command_line_and_its_errors(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_noise_scale_multiplies_the_scheduled_std_of_the_named_joints(tmp_path):
     """The run ends with the schedule's std times each joint's factor (the others unscaled), in
     the saved parameters that the sampled policy uses."""
@@ -566,6 +571,7 @@ def test_noise_scale_multiplies_the_scheduled_std_of_the_named_joints(tmp_path):
 EXACT = {**TINY, "num_evals": 4}
 
 
+@pytest.mark.slow
 def test_resume_after_sigkill_ends_with_the_parameters_of_an_uninterrupted_run(tmp_path):
     """A CLI run killed (SIGKILL) after logging step 2 of 3 but before that checkpoint, then
     resumed with --resume: parameters bit for bit those of an uninterrupted run, progress.csv
