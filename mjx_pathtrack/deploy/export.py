@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_pathtrack.core.knot_rule import KnotRule
-from mjx_pathtrack.deploy.onnx_policy import ONNX_FILE
+from mjx_pathtrack.deploy.onnx_policy import ONNX_FILE, observation_batch
 from mjx_pathtrack.fileio import atomic_write_bytes
 
 FORMAT_VERSION = 1
@@ -214,12 +214,7 @@ class ExportedPolicy:
         return jax.pure_callback(lambda o: np.asarray(run(o), np.float32), out, jnp.asarray(obs, jnp.float32))
 
     def __call__(self, obs) -> np.ndarray:
-        obs = np.asarray(obs, np.float32)
-        single = obs.ndim == 1
-        batch = obs[None] if single else obs
-        if batch.ndim != 2 or batch.shape[1] != self.observation_size:
-            raise ExportError(f"observation must have shape [{self.observation_size}] or [B, {self.observation_size}] "
-                              f"for robot {self.manifest['robot']}, got {obs.shape}")
+        batch, single = observation_batch(obs, self.observation_size, ExportError, f"for robot {self.manifest['robot']}")
         if not np.all(np.isfinite(batch)):
             raise ExportError("observation contains NaN or inf")
         action = np.asarray(self._exported.call(jnp.asarray(batch)))

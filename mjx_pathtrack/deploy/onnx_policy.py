@@ -7,7 +7,7 @@ hand -- into a graph with one input ``observation [batch, obs_size]`` float32 an
 random observations; :func:`~mjx_pathtrack.deploy.export.export_policy` writes ``policy.onnx``
 only when that difference is at most :data:`TOLERANCE` on :data:`CHECK_OBSERVATIONS`
 observations and records both in the manifest. :class:`OnnxPolicy` runs the file with numpy and
-``onnxruntime`` alone (docs/deploy.md)::
+``onnxruntime`` alone (README "Deploy without JAX")::
 
     import numpy as np, onnxruntime as ort
     session = ort.InferenceSession("export/policy.onnx")
@@ -92,14 +92,20 @@ class OnnxPolicy:
         self.observation_size = int(inputs[0].shape[1])
 
     def __call__(self, obs) -> np.ndarray:
-        obs = np.asarray(obs, np.float32)
-        single = obs.ndim == 1
-        batch = obs[None] if single else obs
-        if batch.ndim != 2 or batch.shape[1] != self.observation_size:
-            raise OnnxError(f"observation must have shape [{self.observation_size}] or [B, {self.observation_size}], "
-                            f"got {obs.shape}")
+        batch, single = observation_batch(obs, self.observation_size, OnnxError)
         action = self.session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0]
         return action[0] if single else action
+
+
+def observation_batch(obs, size: int, error: type[Exception], owner: str = "") -> tuple[np.ndarray, bool]:
+    """``(batch [B, size] float32, single)`` of observations given as ``[size]`` (``single``) or
+    ``[B, size]``; ``error`` (naming ``owner``, e.g. "for robot iiwa") for any other shape."""
+    obs = np.asarray(obs, np.float32)
+    single = obs.ndim == 1
+    batch = obs[None] if single else obs
+    if batch.ndim != 2 or batch.shape[1] != size:
+        raise error(f"observation must have shape [{size}] or [B, {size}]{' ' + owner if owner else ''}, got {obs.shape}")
+    return batch, single
 
 
 def check_observations(obs_size: int, count: int = CHECK_OBSERVATIONS, seed: int = 0) -> np.ndarray:

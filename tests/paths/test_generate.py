@@ -100,12 +100,9 @@ def test_mixed_sources_written_before_the_persistent_part_regenerate_without_it(
     """A mixed config.json without ``persistent_share`` (the committed iiwa mixed set) regenerates
     with no persistent paths, whatever the current default; a recorded share is kept."""
     old = datasets.read_config("iiwa", "mixed")["source"]
+    assert "persistent_share" not in old   # the committed set predates the persistent part
     params = generate.source_params("mixed", old)
-    if "persistent_share" in old:
-        assert params["persistent_share"] == old["persistent_share"]
-    else:
-        assert params["persistent_share"] == 0.0
-    assert params["target_share"] == old["target_share"]
+    assert params["persistent_share"] == 0.0 and params["target_share"] == old["target_share"] == 0.5
     assert generate.source_params("mixed", {"target_share": 0.2, "persistent_share": 0.4}) == \
         {"target_share": 0.2, "persistent_share": 0.4}
 
