@@ -31,7 +31,7 @@ import numpy as np
 
 from mjx_pathtrack.rl import batched_ppo as B
 from mjx_pathtrack.config.run import TrainConfig
-from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.deploy.networks import policy_network_factory
 from mjx_pathtrack.rl.training import make_env
 from mjx_pathtrack.envs.wrappers import wrap_for_training
 
@@ -43,7 +43,7 @@ def brax_train(config: TrainConfig, env) -> float:
     _, params, _ = ppo.train(
         environment=env, wrap_env_fn=wrap_for_training, episode_length=config.env_config().max_episode_steps() + 1,
         **dataclasses.replace(config.ppo, final_learning_rate=None).brax_kwargs(), num_evals=config.eval.num_evals,
-        run_evals=False, normalize_observations=True, network_factory=ppo_networks(config.network), seed=config.seed)
+        run_evals=False, normalize_observations=True, network_factory=policy_network_factory(config), seed=config.seed)
     jax.block_until_ready(params)
     return time.perf_counter() - t0
 

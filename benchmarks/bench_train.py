@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from bench_env import rate, rollout_states  # same directory: the timing loop and states of the env benchmark
 from mjx_pathtrack import _xla
 from mjx_pathtrack.config.run import TrainConfig
-from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.deploy.networks import policy_networks
 from mjx_pathtrack.rl.training import make_env, train
 
 
@@ -84,7 +84,7 @@ def sgd_rate(config, env) -> float:
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import losses
 
-    net = ppo_networks(config.network)(env.observation_size, env.action_size)
+    net = policy_networks(config, env.observation_size, env.action_size)
     key = jax.random.PRNGKey(0)
     params = losses.PPONetworkParams(policy=net.policy_network.init(key), value=net.value_network.init(key))
     norm = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float32))

@@ -26,17 +26,15 @@ def main() -> None:
     parser.add_argument("run")
     parser.add_argument("--seed", type=int, default=3, help="start state of the episode")
     args = parser.parse_args()
-    from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as ppo_nets
 
-    from mjx_pathtrack.deploy.networks import networks as ppo_networks
+    from mjx_pathtrack.deploy.networks import policy_networks
 
     run = Path(args.run)
     config = T.VelocityTrainConfig.from_json((run / "config.json").read_text())
     env = T.make_env(config)
     params = pickle.loads((run / "params.pkl").read_bytes())
-    nets = ppo_networks(config.network)(env.observation_size, env.action_size,
-                                        preprocess_observations_fn=running_statistics.normalize)
+    nets = policy_networks(config, env.observation_size, env.action_size)
     inference = ppo_nets.make_inference_fn(nets)(params, deterministic=True)
     act = jax.jit(lambda obs: inference(obs, jax.random.PRNGKey(0))[0])
     step = jax.jit(env.step)

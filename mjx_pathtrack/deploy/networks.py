@@ -120,6 +120,38 @@ def networks(config, prior=None):
     return make
 
 
+def policy_network_factory(config):
+    """The network factory of a training run's policy, the one place it is built (training,
+    evaluation, export, warm starts, sweeps): :func:`networks` of ``config.network`` with the
+    run's action prior (``--leg-prior``; :func:`~mjx_pathtrack.envs.tasks.humanoid_balance.action_prior`).
+    ``config``: a :class:`~mjx_pathtrack.config.run.TrainConfig` (or any config with a
+    ``network`` block; one without a ``task`` has no prior)."""
+    from mjx_pathtrack.envs.tasks import humanoid_balance
+
+    return networks(config.network, humanoid_balance.action_prior(config))
+
+
+def policy_networks(config, observation_size: int, action_size: int):
+    """Brax PPO networks of a training run's policy (:func:`policy_network_factory`) for an
+    environment's ``observation_size`` and ``action_size``, observations normalised by Brax's
+    running statistics, as training builds them."""
+    from brax.training.acme import running_statistics
+
+    return policy_network_factory(config)(int(observation_size), int(action_size),
+                                          preprocess_observations_fn=running_statistics.normalize)
+
+
+def params_observation_size(params) -> int:
+    """The observation size ``[obs]`` that trained parameters ``(normaliser, policy, value)``
+    read: the inputs of the policy network's first layer (the value network and the normaliser
+    may see more: ``privileged_critic``). Raises ``ValueError`` if ``params`` do not hold a
+    policy network of :func:`networks`."""
+    try:
+        return int(params[1]["params"]["MLP_0"]["hidden_0"]["kernel"].shape[0])
+    except (TypeError, KeyError, IndexError, AttributeError) as e:
+        raise ValueError(f"not the parameters of a policy network (no policy first layer: {type(e).__name__}: {e})") from e
+
+
 def _networks(config):
     """:func:`networks` without a prior."""
     from brax.training import networks as brax_nets

@@ -33,7 +33,7 @@ from mjx_pathtrack.envs import registry
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 from mjx_pathtrack.fileio import atomic_write_bytes, json_safe
 from mjx_pathtrack.config.run import TrainConfig
-from mjx_pathtrack.deploy.networks import networks as ppo_networks
+from mjx_pathtrack.deploy.networks import params_observation_size, policy_networks
 
 #: paper 000 Table VI, policy / TOPP-RA duration, iiwa random paths
 PAPER_RATIO = {"iiwa": 1.27}
@@ -55,6 +55,7 @@ class PolicySource:
     kind: str
     path: FsPath
     knot_rule: KnotRule | None = None   # an export's (its manifest); None: the training dataset's
+    observation_size: int | None = None  # what the policy reads (manifest / parameters)
 
     def training_knot_rule(self) -> KnotRule:
         """Where the policy's training paths have their knots: the export's record, else the
@@ -126,7 +127,7 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
         except export.ExportError as e:
             raise EvaluationError(f"{root}: {e}") from e
         return PolicySource(lambda obs, key: exported.traced_call(obs), config, float(man["max_dis_between_knots"]),
-                            "export", root, rule)
+                            "export", root, rule, exported.observation_size)
     config_file, params_file = root / "config.json", root / "params.pkl"
     if not config_file.is_file():
         raise EvaluationError(f"{root} is neither a run directory (config.json missing) nor an export "
@@ -137,7 +138,8 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
         raise EvaluationError(f"corrupt run config {config_file}: {e}") from e
     if checkpoint is not None:
         params, params_file = _checkpoint_params(root, checkpoint)
-        return PolicySource(_brax_policy(config, params, params_file, deterministic), config, None, "run", root)
+        policy, obs_size = _brax_policy(config, params, params_file, deterministic)
+        return PolicySource(policy, config, None, "run", root, observation_size=obs_size)
     if not params_file.is_file():
         raise EvaluationError(f"{root}: params.pkl missing (training not finished? evaluate a checkpoint with "
                               f"--checkpoint latest, or finish the run with train.py --resume)")
@@ -145,7 +147,8 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
         params = pickle.loads(params_file.read_bytes())
     except Exception as e:  # unpickling errors come in many types
         raise EvaluationError(f"corrupt checkpoint {params_file}: {type(e).__name__}: {e}") from e
-    return PolicySource(_brax_policy(config, params, params_file, deterministic), config, None, "run", root)
+    policy, obs_size = _brax_policy(config, params, params_file, deterministic)
+    return PolicySource(policy, config, None, "run", root, observation_size=obs_size)
 
 
 def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
@@ -174,28 +177,23 @@ def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
     return C.learner_params(data["learner"], int(data.get("devices", 1))), path
 
 
-def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True) -> E.Policy:
-    from brax.training.acme import running_statistics
+def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True
+                 ) -> tuple[E.Policy, int]:
+    """The policy of trained ``params`` on the networks of ``config`` and the observation size
+    it reads (from the parameters; :func:`build_env` checks it against the environment)."""
     from brax.training.agents.ppo import networks as ppo_nets
 
-    prior = None
+    try:
+        obs_size = params_observation_size(params)
+    except ValueError as e:
+        raise EvaluationError(f"checkpoint {params_file}: {e}") from e
     if config.task == "balance":
         from mjx_pathtrack.envs.tasks import humanoid_balance
 
         n = len(humanoid_balance.eval_robot(config).joint_names)
-        obs_size = humanoid_balance.observation_size(config.env.n_next, config.balance.legs)
-        prior = humanoid_balance.action_prior(config)
     else:
-        robot = robots.load_robot(config.robot, dt=config.env.dt)
-        n = robot.n_joints
-        m = int(np.sum(robot.path_mask))
-        obs_size = 3 * n + m * (config.env.n_next + 1) + 2 + config.env.n_next + \
-            (m if config.env.observe_deviation else 0)
-    if config.task == "ball_on_plate":
-        from mjx_pathtrack.envs.tasks.ball_on_plate import observation_size
-
-        obs_size = observation_size(n, config.env.n_next, sensor=config.ball_on_plate.reward > 0)
-    nets = ppo_networks(config.network, prior)(obs_size, n, preprocess_observations_fn=running_statistics.normalize)
+        n = robots.load_robot(config.robot, dt=config.env.dt).n_joints
+    nets = policy_networks(config, obs_size, n)
     policy = E.brax_policy(ppo_nets.make_inference_fn(nets), params, deterministic)
     try:
         out = jax.eval_shape(policy, jax.ShapeDtypeStruct((1, obs_size), jnp.float32), jax.random.PRNGKey(0))
@@ -205,7 +203,7 @@ def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic
                               f"{type(e).__name__}: {e}") from e
     if out.shape != (1, n):
         raise EvaluationError(f"checkpoint {params_file}: policy output {out.shape}, expected (1, {n})")
-    return policy
+    return policy, obs_size
 
 
 def user_paths(file: str, robot: str, rule: KnotRule | None = None) -> S.Path:
@@ -256,6 +254,17 @@ def check_level_plate(user: UserPaths, dt: float = 0.1) -> None:
 
 def build_env(source: PolicySource, paths_file: "str | UserPaths | None" = None, split: str = "test",
               full_paths: bool = False, floating_base: bool = False) -> tuple[PathTrackingEnv, robots.Robot, str]:
+    """:func:`_build_env`, checked: the environment's observation is the size the policy reads
+    (:class:`EvaluationError` naming both otherwise)."""
+    env, robot, label = _build_env(source, paths_file, split, full_paths, floating_base)
+    if source.observation_size is not None and env.observation_size != source.observation_size:
+        raise EvaluationError(f"{source.path}: the policy reads observations of {source.observation_size} values, "
+                              f"the evaluation environment of its config.json builds {env.observation_size}")
+    return env, robot, label
+
+
+def _build_env(source: PolicySource, paths_file: "str | UserPaths | None" = None, split: str = "test",
+               full_paths: bool = False, floating_base: bool = False) -> tuple[PathTrackingEnv, robots.Robot, str]:
     """The evaluation environment: the training config's (termination, weights, executor), the
     training dataset's observation scale, on ``split`` of the training dataset or on user paths
     (``paths_file``: a file, re-knotted by the policy's rule, or :func:`load_user_paths`' result);

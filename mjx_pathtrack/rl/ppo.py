@@ -31,8 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_pathtrack.deploy.networks import CRITIC_FEATURES, networks, noise_factors  # noqa: F401  (re-exported)
-from mjx_pathtrack.envs.tasks import humanoid_balance
+from mjx_pathtrack.deploy.networks import CRITIC_FEATURES, networks, noise_factors, policy_networks  # noqa: F401  (re-exported)
 from mjx_pathtrack.envs.wrappers import CriticFeatures, wrap_for_training
 
 #: name of the device axis under ``jax.pmap``
@@ -147,8 +146,7 @@ def build(config, env, axis_name: str | None = None, action_names=None) -> Core:
                              f"{None if action_names is None else len(action_names)}")
         factors = jnp.asarray(noise_factors(config.network.noise_scale, action_names))
     episode_length = config.env_config().max_episode_steps() + 1
-    network = networks(config.network, humanoid_balance.action_prior(config))(env.observation_size, env.action_size,
-                                       preprocess_observations_fn=running_statistics.normalize)
+    network = policy_networks(config, env.observation_size, env.action_size)
     extend = config.network.privileged_critic
     make_policy = brax_ppo_networks.make_inference_fn(network)
     optimizer = optax.adam(learning_rate=c.learning_rate)

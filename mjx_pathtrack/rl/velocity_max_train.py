@@ -85,7 +85,7 @@ def train(config: VelocityTrainConfig, run_dir: str | Path, verbose: bool = True
     optimal policies on ``eval_episodes`` episodes and the wall time."""
     from brax.training.agents.ppo import train as ppo
 
-    from mjx_pathtrack.deploy.networks import networks as ppo_networks
+    from mjx_pathtrack.deploy.networks import policy_network_factory
     from mjx_pathtrack.fileio import json_safe
     from mjx_pathtrack.rl.training import Progress
     from mjx_pathtrack.envs.wrappers import wrap_for_training
@@ -103,7 +103,7 @@ def train(config: VelocityTrainConfig, run_dir: str | Path, verbose: bool = True
         **dataclasses.replace(config.ppo, discounting=config.discounting).brax_kwargs(),
         num_evals=config.eval.num_evals, num_eval_envs=config.ppo.num_envs, deterministic_eval=True,
         normalize_observations=True, run_evals=config.brax_evals,
-        network_factory=ppo_networks(config.network), seed=config.seed,
+        network_factory=policy_network_factory(config), seed=config.seed,
         progress_fn=Progress(run_dir, config.ppo.num_timesteps, echo=verbose))
     train_s = time.monotonic() - t0
     inference = make_inference_fn(params, deterministic=True)

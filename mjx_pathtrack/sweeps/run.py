@@ -98,8 +98,16 @@ class Evaluation:
             env = make_env(config, "test")
             if dataset is not None and dataset != config.dataset:  # observation scale of the training set
                 paths = datasets.load_paths(config.robot, dataset, "test", root=config.dataset_root)
-                env = PathTrackingEnv(env.limits, paths, env.max_dis, env.config, path_joints=env.path_joints,
-                                      home=env.home, executor=env.executor)
+                if config.task == "balance":   # the task's environment, not a plain tracking one
+                    from mjx_pathtrack.envs.tasks import humanoid_balance
+
+                    env = humanoid_balance.make_env(config, "test", paths=paths, max_dis=env.max_dis)
+                elif config.task == "tracking":
+                    env = PathTrackingEnv(env.limits, paths, env.max_dis, env.config, path_joints=env.path_joints,
+                                          home=env.home, executor=env.executor)
+                else:
+                    raise SweepError(f"a {config.task!r} sweep is evaluated on its own dataset only, "
+                                     f"not on {dataset!r}")
             self._fns[key] = env
         return self._fns[key]
 
@@ -206,14 +214,11 @@ def episode_record(env, rec: dict[str, np.ndarray], info: dict[str, np.ndarray])
 
 
 def _make_policy(config: TrainConfig, env):
-    from brax.training.acme import running_statistics
     from brax.training.agents.ppo import networks as brax_ppo_networks
 
-    from mjx_pathtrack.deploy.networks import networks as ppo_networks
+    from mjx_pathtrack.deploy.networks import policy_networks
 
-    nets = ppo_networks(config.network)(env.observation_size, env.action_size,
-                                preprocess_observations_fn=running_statistics.normalize)
-    return brax_ppo_networks.make_inference_fn(nets)
+    return brax_ppo_networks.make_inference_fn(policy_networks(config, env.observation_size, env.action_size))
 
 
 # -- running -----------------------------------------------------------------------------------

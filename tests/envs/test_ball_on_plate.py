@@ -68,11 +68,11 @@ def test_tilting_the_plate_drops_the_ball_and_ends_the_episode(rollout):
 
 def test_observation_sizes(env, rollout):
     state, _ = rollout
-    assert env.observation_size == BP.observation_size() == 72 and state.obs.shape == (2, 72)
+    assert env.observation_size == 72 and state.obs.shape == (2, 72)
     assert np.all(np.abs(state.obs) <= 1.0)
     blind = BP.BallOnPlateEnv(env.limits, env.paths, env.max_dis, env.config, env.executor,
                               BP.BallConfig(reward=0.0, sensor=False), home=env.home)
-    assert blind.observation_size == BP.observation_size(sensor=False) == 68
+    assert blind.observation_size == 68
     assert jax.eval_shape(blind.reset, jax.random.PRNGKey(0)).obs.shape == (68,)
     # the exported manifest names every block, sensors last
     for e, size in ((env, 72), (blind, 68)):

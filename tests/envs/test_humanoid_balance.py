@@ -111,7 +111,6 @@ def test_observation_sizes_match_reference(robot, legs_robot, rollout):
         other = make(which, legs, sensor)
         assert (other.observation_size, other.action_size) == (size, actions)
         assert jax.eval_shape(other.reset, key).obs.shape == (size,)
-        assert H.observation_size(8, legs, sensor) == size
         layout = observation_layout(other.limits.n_joints, len(other.path_joints), 8,
                                     other.extra_observation_blocks())
         assert sum(b["size"] for b in layout) == size and other.task_name == "balance"
@@ -244,7 +243,7 @@ def test_leg_prior_holds_the_legs_of_the_controlled_legs_env_at_its_home(legs_ro
         np.testing.assert_array_equal(np.asarray(getattr(prior.limits, field)),
                                       np.asarray(getattr(env.limits, field))[legs])
     assert prior.dt == pytest.approx(env.config.dt)
-    obs = jnp.zeros((2, H.observation_size(8, "controlled")))
+    obs = jnp.zeros((2, env.observation_size))
     assert np.all(np.asarray(prior(obs))[:, np.asarray(legs_robot.path_mask)] == 0.0)
     assert H.action_prior(cfg.replace(leg_prior="none")) is None
     with pytest.raises(ValueError, match="needs legs='controlled'"):

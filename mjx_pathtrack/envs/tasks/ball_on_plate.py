@@ -273,11 +273,6 @@ class BallOnPlateEnv(PathTrackingEnv):
         return jnp.clip(jnp.concatenate([super().observe(track)] + extras), -1.0, 1.0)
 
 
-def observation_size(n_joints: int = 7, n_next: int = 4, sensor: bool = True) -> int:
-    """docs/method.md §4: ``3 n + n (N + 1) + 2 + N + 6 (+ 4 with the ball sensor)``."""
-    return 3 * n_joints + n_joints * (n_next + 1) + 2 + n_next + sum(size for _, size in extra_blocks(sensor))
-
-
 #: the task's physics (``make_env(physics=...)``): ``"arm"``, the whole servo-driven arm with the
 #: plate and the ball in MJX (:class:`BallExecutor`, the reference); ``"plate"``, the plate's
 #: motion prescribed by the setpoints and only the plate and the ball in MJX

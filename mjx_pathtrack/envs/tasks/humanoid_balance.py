@@ -264,15 +264,6 @@ class HumanoidBalanceEnv(PathTrackingEnv):
         return super().metric_names() + tuple(f"reward/{k}" for k in BALANCE_TERMS) + ("tilt", "end_point_error")
 
 
-def observation_size(n_next: int, legs: str = "fixed", base_sensor: bool = True) -> int:
-    """Observation size of the task (docs/method.md §4: 226 / 234 with fixed legs, 270 with controlled
-    legs and the base sensor, for N = 8), without building the environment."""
-    if legs not in LEGS:
-        raise ValueError(f"legs must be one of {LEGS}, got {legs!r}")
-    n, m = (18, 18) if legs == "fixed" else (30, 18)
-    return 3 * n + m * (n_next + 1) + 2 + n_next + (BASE_OBS_SIZE if base_sensor else 0)
-
-
 def balance_weights(scale: float = 1.0, base: R.RewardWeights = BALANCE_WEIGHTS) -> R.RewardWeights:
     """``base`` (default: the papers' ARMAR-4 weights) with the four balance terms set to the
     papers' weights (0.2, 0.2, 2.0, 0.2) times ``scale`` (0: the "no balancing reward" variant)."""
