@@ -172,7 +172,8 @@ def _upgrade_flat(data: dict[str, Any]) -> dict[str, Any]:
 #: the environment options with a flat name (``--dt``, ...); every other ``EnvConfig`` field is
 #: reached by its dotted path (``env.substeps``)
 _ENV_OPTIONS = ("dt", "n_next", "substeps", "knots_frame", "terminate_deviation", "end_tolerance", "end_braking", "end_stop",
-                "end_knot_tolerance", "duration", "observe_deviation")
+                "end_knot_tolerance", "duration", "observe_deviation",
+                "observe_speed_limits")
 
 #: flat option name -> the dotted paths it sets (the command line's ``--name``, sweep grid keys,
 #: the keys of a flat ``config.json``)
@@ -224,6 +225,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
         fail("robot", f"unknown robot {c.robot!r}; known: {', '.join(robots.known_robots())}")
     if c.env.observe_deviation and c.task != "tracking":
         fail("observe_deviation", f"the deviation block is built for the tracking task, not {c.task!r}")
+    if c.env.observe_speed_limits and c.task != "tracking":
+        fail("observe_speed_limits", f"the speed-limit block is built for the tracking task, not {c.task!r}")
     if c.task == "balance" and c.balance.legs not in humanoid_balance.LEGS:
         fail("legs", f"{c.balance.legs!r} is not one of {', '.join(humanoid_balance.LEGS)}")
     if c.balance.leg_prior != "none" and (c.task != "balance" or c.balance.legs != "controlled"):

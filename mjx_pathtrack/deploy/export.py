@@ -42,7 +42,8 @@ REQUIRED_KEYS = {"robot": (str, "a string"), "joint_names": (list, "a list"), "p
 #: the environment settings (``EnvConfig`` fields) a manifest records, each with the value that a
 #: manifest written before the setting existed implies (None: the setting's default)
 MANIFEST_ENV_SETTINGS = {"knots_frame": "absolute", "end_braking": "at_end", "end_stop": "fastest",
-                         "end_knot_tolerance": None, "observe_deviation": False}
+                         "end_knot_tolerance": None, "observe_deviation": False,
+                         "observe_speed_limits": False}
 
 
 class ExportError(ValueError):

@@ -42,6 +42,9 @@ Array = jax.Array
 #: [rad] deviation shown as 1 in the observation's deviation block (``observe_deviation``): the
 #: papers' termination distance
 DEVIATION_SCALE = 0.25
+#: path-speed ratio shown as 1 in the observation's speed-limit block (``observe_speed_limits``):
+#: twice the fastest speed a segment ahead allows
+SPEED_RATIO_SCALE = 2.0
 #: how the observation shows the next knots (:class:`EnvConfig` ``knots_frame``)
 KNOTS_FRAMES = ("absolute", "relative")
 #: when braking at the end of the path starts (:class:`EnvConfig` ``end_braking``)
@@ -89,6 +92,11 @@ class EnvConfig:
     minus the path joints' position, divided by ``DEVIATION_SCALE`` [rad], clipped) to the
     observation: the offset from the path that the knot blocks show only at 1/(N max_dis) scale
     (tracking task only).
+    observe_speed_limits: append, for each of the ``n_next`` knot segments ahead, the robot's
+    path-joint speed over the fastest speed along that segment that the velocity limits allow
+    (:func:`segment_speed_ratios`), mapped from [0, 2] to [-1, 1]: above 0 the robot is faster than
+    the segment allows and must slow down before it. Whatever the curve's shape, the one joint
+    that binds on a segment shows up here (tracking task only).
     """
 
     dt: float = 0.1
@@ -114,6 +122,7 @@ class EnvConfig:
     end_stop: str = "fastest"
     end_knot_tolerance: float = 0.05
     observe_deviation: bool = False
+    observe_speed_limits: bool = False
 
     def __post_init__(self):
         if self.end_braking not in END_BRAKING:
@@ -212,8 +221,10 @@ class PathTrackingEnv(Env):
 
     def tracking_extra_blocks(self) -> list[tuple[str, int]]:
         """Optional path-tracking blocks ``[(name, size), ...]`` after the papers' observation and
-        before a task's: the deviation vector with ``observe_deviation``."""
-        return [("deviation", len(self.path_joints))] if self.config.observe_deviation else []
+        before a task's: the deviation vector with ``observe_deviation``, the segments' speed
+        ratios with ``observe_speed_limits``."""
+        return [("deviation", len(self.path_joints))] * self.config.observe_deviation + \
+            [("speed_limits", self.config.n_next)] * self.config.observe_speed_limits
 
     def extra_observation_blocks(self) -> list[tuple[str, int]]:
         """Named task-specific blocks ``[(name, size), ...]`` that :meth:`observe` appends after
@@ -514,7 +525,26 @@ class PathTrackingEnv(Env):
         if cfg.observe_deviation:
             offset = (S.point_at(path, track.s) - track.p[self.path_joints]) / DEVIATION_SCALE
             obs = jnp.concatenate([obs, offset])
+        if cfg.observe_speed_limits:
+            pj = self.path_joints
+            ratio = segment_speed_ratios(window.knots, track.v[pj], lim.vel[pj])
+            obs = jnp.concatenate([obs, -1.0 + 2.0 * ratio / SPEED_RATIO_SCALE])
         return jnp.clip(obs, -1.0, 1.0)
+
+
+def segment_speed_ratios(knots: Array, v: Array, vel: Array) -> Array:
+    """Speed ratios ``[..., N]`` [-] of the ``N`` segments between ``knots [..., N+1, m]`` [rad]:
+    the speed ``|v|`` of the velocity ``v [..., m]`` [rad/s] over the fastest speed along the
+    segment's chord that the velocity limits ``vel [m]`` [rad/s] allow, ``min_i vel_i / |u_i|``
+    (``u`` the chord's unit vector): 1 means a joint would sit at its limit moving along the
+    segment at the current speed. A zero-length segment (beyond the path end) gives 0."""
+    chord = jnp.diff(knots, axis=-2)
+    length = jnp.linalg.norm(chord, axis=-1, keepdims=True)
+    u = jnp.abs(chord) / jnp.maximum(length, 1e-12)
+    # 1 / (fastest allowed speed) = max_i |u_i| / vel_i
+    inverse = jnp.max(u / vel, axis=-1)
+    speed = jnp.linalg.norm(v, axis=-1, keepdims=True)
+    return jnp.where(length[..., 0] > 1e-9, speed * inverse, 0.0)
 
 
 def normalize_position(p: Array, lo: Array, hi: Array) -> Array:

@@ -35,6 +35,37 @@ def test_observation_layout_matches_reference_size(env):
     assert bool(jnp.all(state.obs[7:21] == 0.0))
 
 
+def test_speed_limit_block_shows_the_speed_over_each_segments_fastest():
+    """``observe_speed_limits``: ``n_next`` more entries after the papers' 94, each segment's
+    ``|v| max_i(|u_i| / vel_i)`` mapped from [0, 2] to [-1, 1]: -1 at rest, 0 where the current speed
+    puts the binding joint exactly at its limit along the segment; checked against a hand
+    computation on an off-path state, and the zero-length segments beyond the end give -1."""
+    from mjx_pathtrack.deploy.export import env_observation_layout
+    from mjx_pathtrack.envs.tracking import segment_speed_ratios
+
+    paths = random_walk_paths()
+    lim = iiwa.joint_limits(DT)
+    plain = PathTrackingEnv(lim, paths, 0.5, EnvConfig())
+    env = PathTrackingEnv(lim, paths, 0.5, EnvConfig(observe_speed_limits=True))
+    assert env.observation_size == 94 + 8
+    state = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    np.testing.assert_array_equal(np.asarray(state.obs[:94]), np.asarray(jax.jit(plain.reset)(jax.random.PRNGKey(3)).obs))
+    np.testing.assert_allclose(np.asarray(state.obs[94:]), -1.0)   # at rest
+    track = state.pipeline_state
+    v = 0.4 * np.asarray(lim.vel) * np.array([1, -1, 0.5, 0, 1, -0.2, 0.3])
+    window = S.knot_window(env.reference(track), track.s, 8)
+    knots = np.asarray(window.knots, np.float64)
+    chords = np.diff(knots, axis=0)
+    expect = [np.linalg.norm(v) * np.max(np.abs(c) / np.linalg.norm(c) / np.asarray(lim.vel)) for c in chords]
+    obs = np.asarray(env.observe(track._replace(v=jnp.asarray(v, jnp.float32))))
+    np.testing.assert_allclose(obs[94:], np.clip(-1 + np.array(expect), -1, 1), atol=1e-5)
+    assert np.any(np.abs(obs[94:]) < 0.999)   # the check above is not all clipped
+    # segments past the end knot have no length: ratio 0
+    end = np.repeat(knots[-1:], 3, axis=0)
+    np.testing.assert_array_equal(np.asarray(segment_speed_ratios(jnp.asarray(end), jnp.asarray(v), lim.vel)), 0.0)
+    assert env_observation_layout(env)[-1] == {"name": "speed_limits", "start": 94, "size": 8}
+
+
 def test_deviation_block_shows_the_offset_from_the_reference_point():
     """``observe_deviation``: 7 more entries after the papers' 94, equal to (reference point at the
     current arc position - position) / 0.25 rad (clipped), the rest unchanged; the export's layout

@@ -708,7 +708,7 @@ def test_unknown_robot_and_bad_out_are_clear_cli_errors(tmp_path):
 
 
 def test_observe_deviation_option_and_its_task_check():
-    """``--observe-deviation`` reaches the environment config and round-trips through config.json;
+    """``--observe-deviation`` and ``--observe-speed-limits`` reach the environment config and round-trips through config.json;
     a task other than tracking is refused naming the option."""
     import train as cli
     from mjx_pathtrack.config.run import ConfigError, validate_config
@@ -718,3 +718,8 @@ def test_observe_deviation_option_and_its_task_check():
     assert TrainConfig.from_json(cfg.to_json()) == cfg
     with pytest.raises(ConfigError, match="--observe-deviation: the deviation block is built for the tracking task"):
         validate_config(cli.parse_args(["--task", "ball_on_plate", "--observe-deviation"])[1])
+    _, cfg = cli.parse_args(["--observe-speed-limits"])
+    assert cfg.env.observe_speed_limits and not cli.parse_args([])[1].env.observe_speed_limits
+    assert TrainConfig.from_json(cfg.to_json()) == cfg
+    with pytest.raises(ConfigError, match="--observe-speed-limits: the speed-limit block is built for the tracking task"):
+        validate_config(cli.parse_args(["--task", "balance", "--observe-speed-limits"])[1])
