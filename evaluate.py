@@ -80,34 +80,52 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
+def option_problem(args) -> str | None:
+    """The first problem of the command line's options that needs no policy, dataset or JAX
+    (one line, as ``train.py``'s option errors), or None."""
+    from pathlib import Path
+
+    inf = float("inf")
+    checks = (
+        (not Path(args.source).is_dir(), f"no run or export directory at {args.source}"),
+        (args.paths and not Path(args.paths).is_file(), f"--paths {args.paths}: no such file"),
+        (args.keep_knots and not args.paths, "--keep-knots applies to --paths only"),
+        (args.episodes is not None and args.episodes < 1, f"--episodes must be >= 1, got {args.episodes}"),
+        (args.batch < 1, f"--batch must be >= 1, got {args.batch}"),
+        (args.plot_episode < 0, f"--plot-episode must be >= 0, got {args.plot_episode}"),
+        (args.timing_decisions < 0, f"--timing-decisions must be >= 0, got {args.timing_decisions}"),
+        (args.workers < 1, f"--workers must be >= 1, got {args.workers}"),
+        (args.terminate_deviation is not None and not 0 < args.terminate_deviation < inf,
+         f"--terminate-deviation must be a finite number > 0, got {args.terminate_deviation}"),
+        (args.end_knot_tolerance is not None and not 0 < args.end_knot_tolerance < inf,
+         f"--end-knot-tolerance must be a finite number > 0, got {args.end_knot_tolerance}"),
+        (args.end_tolerance is not None and not 0 <= args.end_tolerance < inf,
+         f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}"),
+        (args.checkpoint is not None and args.checkpoint != "latest" and not args.checkpoint.isdigit(),
+         f"--checkpoint must be 'latest' or a step (a whole number), got {args.checkpoint!r}"),
+    )
+    return next((message for failed, message in checks if failed), None)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     from pathlib import Path
 
-    # the cheap checks first: the imports below (JAX, Brax, MuJoCo) take seconds
-    for problem in (f"no run or export directory at {args.source}" if not Path(args.source).is_dir() else None,
-                    f"--paths {args.paths}: no such file" if args.paths and not Path(args.paths).is_file() else None):
-        if problem:
-            print(f"evaluate.py: error: {problem}", file=sys.stderr)
-            return 2
+    # the option checks first: the imports below (JAX, Brax, MuJoCo) and the policy take seconds
+    problem = option_problem(args)
+    if problem:
+        print(f"evaluate.py: error: {problem}", file=sys.stderr)
+        return 2
     from mjx_pathtrack.evaluation import report as R
     from mjx_pathtrack.paths.datasets import DatasetError
 
     try:
         source = R.load_policy_source(args.source, deterministic=not args.stochastic, checkpoint=args.checkpoint)
-        if args.terminate_deviation is not None and not args.terminate_deviation > 0:
-            raise R.EvaluationError(f"--terminate-deviation must be > 0, got {args.terminate_deviation}")
-        if args.end_knot_tolerance is not None and not 0 < args.end_knot_tolerance < float("inf"):
-            raise R.EvaluationError(f"--end-knot-tolerance must be a finite number > 0, got {args.end_knot_tolerance}")
-        if args.end_tolerance is not None and not 0 <= args.end_tolerance < float("inf"):
-            raise R.EvaluationError(f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}")
         # the training config's settings that the flags above replace (unset flags keep them)
         overrides = {name: getattr(args, name) for name in ("terminate_deviation", "end_braking", "end_stop",
                                                             "end_knot_tolerance", "end_tolerance", "ball_physics")}
         overrides = {name: value for name, value in overrides.items() if value is not None}
         source = dataclasses.replace(source, config=source.config.replace(**overrides))
-        if args.keep_knots and not args.paths:
-            raise R.EvaluationError("--keep-knots applies to --paths only")
         user = None
         if args.paths:
             user = R.load_user_paths(args.paths, source.config.robot,

@@ -344,7 +344,29 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--end-tolerance must be a finite number >= 0" in err
     assert "no run or export directory" in err and "6 joint values" in err
-    assert "--terminate-deviation must be > 0" in err
+    assert "--terminate-deviation must be a finite number > 0" in err
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--episodes", "-3"], "--episodes must be >= 1, got -3"),
+    (["--batch", "0"], "--batch must be >= 1"),
+    (["--plot-episode", "-1"], "--plot-episode must be >= 0"),
+    (["--timing-decisions", "-5"], "--timing-decisions must be >= 0"),
+    (["--workers", "0"], "--workers must be >= 1"),
+    (["--end-knot-tolerance", "0"], "--end-knot-tolerance must be a finite number > 0"),
+    (["--keep-knots"], "--keep-knots applies to --paths only"),
+    (["--checkpoint", "last"], "--checkpoint must be 'latest' or a step"),
+])
+def test_evaluate_option_errors_are_one_line_before_anything_loads(tmp_path, options, message):
+    """Every option error of evaluate.py: one line naming the option, exit status 2, before JAX
+    or the policy is loaded (the run directory here holds nothing a policy could load from)."""
+    code = ("import sys, evaluate\n"
+            f"rc = evaluate.main([{str(tmp_path)!r}, *{options!r}])\n"
+            "print('rc', rc, 'jax imported', 'jax' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert "rc 2 jax imported False" in result.stdout, result.stdout + result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert lines == [f"evaluate.py: error: {lines[0].split('error: ', 1)[-1]}"] and message in lines[0], result.stderr
 
 
 @pytest.mark.slow
