@@ -312,7 +312,6 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
         latest = evaluation(learner)
         metrics = {**{f"training/{k}": v for k, v in summary.items()}, **latest}
         progress(step, metrics)
-        _fault_injection(step)
         evals["latest"] = latest
         save_checkpoint(checkpoints, step, {"wall_s": progress.wall(), "devices": program.devices,
                                             "learner": _host(learner), "evaluations": evals})
@@ -325,20 +324,6 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
         print("  sampled actions:          ", _fmt(report["after_sampled"]), flush=True)
     write_results(run_dir, core.make_policy, params, test_env, config, joint_names, report)
     return core.make_policy, params, report
-
-
-#: testing aid: a process whose environment sets this to N kills itself with SIGKILL once it has
-#: logged the progress of step >= N and before that step's checkpoint is written (the worst
-#: moment for a resume: the log is ahead of the last checkpoint)
-KILL_VAR = "MJX_PATHTRACK_KILL_AT_STEP"
-
-
-def _fault_injection(step: int) -> None:
-    at = os.environ.get(KILL_VAR)
-    if at is not None and step >= int(at):
-        import signal
-
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def write_results(run_dir: FsPath, make_policy, params, env, config: TrainConfig, joint_names, report: dict) -> None:

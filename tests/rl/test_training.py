@@ -577,16 +577,28 @@ def test_resume_after_sigkill_ends_with_the_parameters_of_an_uninterrupted_run(t
     resumed with --resume: parameters bit for bit those of an uninterrupted run, progress.csv
     without repeated steps, wall_s still increasing. (The child keeps this process's XLA flags
     as its own, so both compile the same programs.)"""
-    from mjx_pathtrack.rl.training import KILL_VAR
-
     reference = tmp_path / "reference"
     _, params, _ = train(TrainConfig().replace(**EXACT), reference, verbose=False)
     run = tmp_path / "killed"
     env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", ""))
     env.pop("MJX_PATHTRACK_ADDED_XLA_FLAG", None)  # the flag counts as the user's: train.py keeps it
     steps = sorted(int(r["step"]) for r in csv.DictReader(open(reference / "progress.csv")))
-    killed = subprocess.run([sys.executable, "train.py", *tiny_args(run), "--num-evals", "4"], cwd=REPO,
-                            env={**env, KILL_VAR: str(steps[2])}, capture_output=True, text=True, timeout=900)
+    # the child is train.py whose checkpoint writer kills the process (SIGKILL) at step 2, after
+    # that step's progress is logged and before its checkpoint is written: the worst moment for a
+    # resume, the log ahead of the last checkpoint (patched here: no test hook in the training loop)
+    child = ("import os, signal, sys\n"
+             "import mjx_pathtrack.rl.training as T\n"
+             "save = T.save_checkpoint\n"
+             "def save_or_die(directory, step, data, *a, **k):\n"
+             f"    if step >= {steps[2]}:\n"
+             "        os.kill(os.getpid(), signal.SIGKILL)\n"
+             "    return save(directory, step, data, *a, **k)\n"
+             "T.save_checkpoint = save_or_die\n"
+             "sys.argv = ['train.py', *sys.argv[1:]]\n"
+             "import runpy\n"
+             "runpy.run_path('train.py', run_name='__main__')\n")
+    killed = subprocess.run([sys.executable, "-c", child, *tiny_args(run), "--num-evals", "4"], cwd=REPO,
+                            env=env, capture_output=True, text=True, timeout=900)
     assert killed.returncode == -9, killed.stderr[-2000:]
     assert latest_checkpoint(run / "checkpoints")[1] == steps[1] and not (run / "params.pkl").exists()
     assert max(int(r["step"]) for r in csv.DictReader(open(run / "progress.csv"))) == steps[2]  # log ahead
