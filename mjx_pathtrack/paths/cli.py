@@ -13,9 +13,10 @@ import json
 import sys
 from typing import Sequence
 
-from mjx_pathtrack.paths.datasets import (DEFAULT_ROOT, SPLITS, DatasetError, import_paths, known_robots, load_split,
+from mjx_pathtrack.paths.datasets import (DEFAULT_ROOT, SPLITS, DatasetError, known_robots, load_split,
                                           split_stats, stats)
 from mjx_pathtrack.paths.generate import generate_dataset
+from mjx_pathtrack.paths.user_paths import import_paths
 
 
 def _params(entries: list[str]) -> dict:

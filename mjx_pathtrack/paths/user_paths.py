@@ -21,13 +21,17 @@ stays what evaluation measures the deviation against (:attr:`PreparedPath.given`
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 from collections.abc import Callable, Sequence
+from pathlib import Path as FsPath
 from types import SimpleNamespace
 
 import numpy as np
 
 from mjx_pathtrack.core.joint_limits import JointLimits
 from mjx_pathtrack.core.knot_rule import KnotRule, curve_distance, reknot
+from mjx_pathtrack.paths import datasets as D
 from mjx_pathtrack.paths.datasets import LIMIT_TOLERANCE, DatasetError, validate_path
 
 
@@ -134,3 +138,50 @@ def report_lines(prepared: Sequence[PreparedPath], rule: KnotRule | None) -> lis
         text += f", target point {100 * max(cart):.2f} cm (median {100 * np.median(cart):.2f})"
     lines.append(text + "; deviations below are measured against your curve")
     return lines
+
+
+def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "test", root=None,
+                 limits: JointLimits | None = None, joint_names: Sequence[str] | None = None,
+                 overwrite: bool = False, rule=None, allowance: float = 0.0) -> FsPath:
+    """Validate user paths and write them as ``<root>/<robot>/<kind>/<split>.npz``.
+
+    ``limits``/``joint_names`` default to :func:`~mjx_pathtrack.paths.datasets.robot_limits`; knots up to ``allowance`` [rad]
+    beyond the limits are moved onto them; ``rule`` (a
+    :class:`~mjx_pathtrack.core.knot_rule.KnotRule`): the paths are re-knotted by it
+    (:func:`prepare_paths`; None: kept as given). Updates ``config.json`` (counts,
+    ``max_dis_between_knots`` over all present splits, the rule and the largest curve distance
+    and limit move per path under ``source``). Refuses to replace an existing split unless
+    ``overwrite``. Returns the dataset directory.
+    """
+    if split not in D.SPLITS:
+        raise DatasetError(f"split must be one of {D.SPLITS}, got {split!r}")
+    if limits is None:
+        limits, default_names = D.robot_limits(robot)
+        joint_names = default_names if joint_names is None else joint_names
+    directory = D.dataset_dir(robot, kind, root)
+    target = directory / f"{split}.npz"
+    if target.exists() and not overwrite:
+        raise DatasetError(f"{target} exists (use overwrite=True / --overwrite to replace it)")
+    prepared = prepare_paths(D.read_user_paths(file), limits, rule, joint_names, allowance=allowance,
+                             prefix=f"{FsPath(file).name}: ")
+    paths = [p.knots for p in prepared]
+
+    cfg_file = directory / "config.json"
+    config = json.loads(cfg_file.read_text()) if cfg_file.is_file() else {}
+    n = paths[0].shape[1]
+    if config.get("n_joints", n) != n:
+        raise DatasetError(f"{directory}: existing splits have {config['n_joints']} joints, new paths {n}")
+    D.save_split(target, paths)
+    splits = {s: (paths if s == split else D.load_split(robot, kind, s, root))
+              for s in D.SPLITS if s == split or (directory / f"{s}.npz").is_file()}
+    config.update(
+        format_version=D.FORMAT_VERSION, robot=robot, kind=kind, n_joints=n,
+        joint_names=list(joint_names) if joint_names is not None else config.get("joint_names"),
+        max_dis_between_knots=D.max_dis_between_knots(splits.values()),
+        **{f"num_{s}": len(splits.get(s, ())) for s in D.SPLITS})
+    config.setdefault("source", {})[split] = {
+        "type": "import", "file": FsPath(file).name, "knot_rule": None if rule is None else rule.to_json(),
+        "curve_distance_rad_max": max(p.joint_distance for p in prepared),
+        "limit_shift_rad_max": max(p.limit_shift for p in prepared)}
+    D.write_config(cfg_file, config)
+    return directory

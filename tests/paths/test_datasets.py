@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from mjx_pathtrack.paths import datasets as D
+from mjx_pathtrack.paths.user_paths import import_paths
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.core import spline
 
@@ -59,17 +60,17 @@ def test_save_load_roundtrip_and_load_paths(tmp_path):
 
 def test_import_npz_writes_split_and_config(tmp_path):
     paths = iiwa_paths(4)
-    directory = D.import_paths(write_npz(tmp_path, paths), "iiwa", "mine", "test", root=tmp_path / "s")
+    directory = import_paths(write_npz(tmp_path, paths), "iiwa", "mine", "test", root=tmp_path / "s")
     config = json.loads((directory / "config.json").read_text())
     assert config["num_test"] == 4 and config["num_train"] == 0
     assert config["n_joints"] == 7 and config["joint_names"] == list(iiwa.JOINT_NAMES)
     expected = max(np.diff(spline.fit_spline(p).knot_s).max() for p in paths)
     assert config["max_dis_between_knots"] == pytest.approx(expected)
     with pytest.raises(D.DatasetError, match="exists"):
-        D.import_paths(write_npz(tmp_path, paths), "iiwa", "mine", "test", root=tmp_path / "s")
+        import_paths(write_npz(tmp_path, paths), "iiwa", "mine", "test", root=tmp_path / "s")
     # a train split next to it updates counts and the max spacing over both splits
     big = [np.concatenate([paths[0][:2], paths[0][-1:]])]
-    D.import_paths(write_npz(tmp_path, big, "b.npz"), "iiwa", "mine", "train", root=tmp_path / "s")
+    import_paths(write_npz(tmp_path, big, "b.npz"), "iiwa", "mine", "train", root=tmp_path / "s")
     config = json.loads((directory / "config.json").read_text())
     assert config["num_train"] == 1 and config["num_test"] == 4
     assert config["max_dis_between_knots"] > expected
@@ -79,7 +80,7 @@ def test_import_json_and_csv(tmp_path):
     paths = iiwa_paths(2)
     jfile = tmp_path / "u.json"
     jfile.write_text(json.dumps({"paths": {"a": paths[0].tolist(), "b": paths[1].tolist()}}))
-    D.import_paths(jfile, "iiwa", "j", root=tmp_path)
+    import_paths(jfile, "iiwa", "j", root=tmp_path)
     for a, b in zip(paths, D.load_split("iiwa", "j", root=tmp_path)):
         np.testing.assert_allclose(a, b, rtol=1e-15)
 
@@ -88,7 +89,7 @@ def test_import_json_and_csv(tmp_path):
     for name, p in zip("xy", paths):
         lines += [name + "," + ",".join(repr(float(v)) for v in row) for row in p]
     cfile.write_text("\n".join(lines) + "\n")
-    D.import_paths(cfile, "iiwa", "c", root=tmp_path)
+    import_paths(cfile, "iiwa", "c", root=tmp_path)
     for a, b in zip(paths, D.load_split("iiwa", "c", root=tmp_path)):
         np.testing.assert_allclose(a, b, rtol=1e-15)
 
@@ -111,7 +112,7 @@ def test_import_errors(tmp_path, make, message):
     good = iiwa_paths(2)
     file = write_npz(tmp_path, [good[0], make(good[1])])
     with pytest.raises(D.DatasetError, match=message) as info:
-        D.import_paths(file, "iiwa", "bad", root=tmp_path)
+        import_paths(file, "iiwa", "bad", root=tmp_path)
     assert "user.npz: p1" in str(info.value)
     assert not (tmp_path / "iiwa" / "bad").exists()      # nothing written on error
 
@@ -134,9 +135,9 @@ def test_import_file_errors(tmp_path):
         D.read_user_paths(tmp_path / "missing.npz")
     (tmp_path / "ragged.json").write_text(json.dumps([[[0.0] * 7, [0.1] * 6]]))
     with pytest.raises(D.DatasetError, match="not a numeric"):
-        D.import_paths(tmp_path / "ragged.json", "iiwa", "r", root=tmp_path)
+        import_paths(tmp_path / "ragged.json", "iiwa", "r", root=tmp_path)
     with pytest.raises(D.DatasetError, match="unknown robot 'ur5'"):
-        D.import_paths(write_npz(tmp_path, iiwa_paths(1)), "ur5", "x", root=tmp_path)
+        import_paths(write_npz(tmp_path, iiwa_paths(1)), "ur5", "x", root=tmp_path)
     with pytest.raises(D.DatasetError, match="invalid kind"):
         D.dataset_dir("iiwa", "../x", tmp_path)
 

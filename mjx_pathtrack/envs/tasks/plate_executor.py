@@ -23,7 +23,7 @@ from mujoco import mjx
 from mujoco.mjx._src import math as mjx_math
 
 from mjx_pathtrack.envs.executors import setpoints
-from mjx_pathtrack.envs.tasks.ball_on_plate import BallExecutor, BallState
+from mjx_pathtrack.envs.tasks.ball_executor import BallExecutor, BallState
 from mjx_pathtrack.robots import ball_scene as B
 
 Array = jax.Array

@@ -41,7 +41,7 @@ import mujoco
 from mujoco.mjx._src import math as mjx_math
 
 from mjx_pathtrack.core import limits as L
-from mjx_pathtrack.envs.tasks.ball_on_plate import BallExecutor, BallState, sample_friction
+from mjx_pathtrack.envs.tasks.ball_executor import BallExecutor, BallState, sample_friction
 from mjx_pathtrack.robots import ball_scene as B
 
 Array = jax.Array
