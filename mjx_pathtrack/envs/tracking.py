@@ -93,10 +93,11 @@ class EnvConfig:
     observation: the offset from the path that the knot blocks show only at 1/(N max_dis) scale
     (tracking task only).
     observe_speed_limits: append, for each of the ``n_next`` knot segments ahead, the robot's
-    path-joint speed over the fastest speed along that segment that the velocity limits allow
-    (:func:`segment_speed_ratios`), mapped from [0, 2] to [-1, 1]: above 0 the robot is faster than
-    the segment allows and must slow down before it. Whatever the curve's shape, the one joint
-    that binds on a segment shows up here (tracking task only).
+    path-joint speed over the fastest speed that the velocity limits allow along the segment and
+    the acceleration limits allow on the turn that ends it (:func:`segment_speed_ratios`), mapped
+    from [0, 2] to [-1, 1]: above 0 the robot is faster than that stretch allows and must slow
+    down before it. Whatever the curve's shape, the joint that binds on a stretch shows up here
+    (tracking task only).
     """
 
     dt: float = 0.1
@@ -527,24 +528,36 @@ class PathTrackingEnv(Env):
             obs = jnp.concatenate([obs, offset])
         if cfg.observe_speed_limits:
             pj = self.path_joints
-            ratio = segment_speed_ratios(window.knots, track.v[pj], lim.vel[pj])
+            ratio = segment_speed_ratios(window.knots, track.v[pj], lim.vel[pj], lim.acc[pj])
             obs = jnp.concatenate([obs, -1.0 + 2.0 * ratio / SPEED_RATIO_SCALE])
         return jnp.clip(obs, -1.0, 1.0)
 
 
-def segment_speed_ratios(knots: Array, v: Array, vel: Array) -> Array:
+def segment_speed_ratios(knots: Array, v: Array, vel: Array, acc: Array) -> Array:
     """Speed ratios ``[..., N]`` [-] of the ``N`` segments between ``knots [..., N+1, m]`` [rad]:
-    the speed ``|v|`` of the velocity ``v [..., m]`` [rad/s] over the fastest speed along the
-    segment's chord that the velocity limits ``vel [m]`` [rad/s] allow, ``min_i vel_i / |u_i|``
-    (``u`` the chord's unit vector): 1 means a joint would sit at its limit moving along the
-    segment at the current speed. A zero-length segment (beyond the path end) gives 0."""
+    the speed ``|v|`` of the velocity ``v [..., m]`` [rad/s] over the fastest speed the segment
+    allows, the smaller of two bounds (a sampled maximum-velocity curve, as TOPP computes it):
+    along the chord, the velocity limits ``vel [m]`` [rad/s] allow ``min_i vel_i / |u_i|`` (``u``
+    the chord's unit vector); on the turn at the knot that ends the segment, the acceleration
+    limits ``acc [m]`` [rad/s^2] allow ``min_i sqrt(acc_i / |q''_i|)``, ``q''`` the change of unit
+    chord over the mean chord length [1/rad] (at zero path acceleration). 1 means a joint would
+    reach its limit moving along the segment at the current speed. A zero-length segment (beyond
+    the path end) gives 0, and a turn next to one counts as none."""
     chord = jnp.diff(knots, axis=-2)
     length = jnp.linalg.norm(chord, axis=-1, keepdims=True)
     u = jnp.abs(chord) / jnp.maximum(length, 1e-12)
     # 1 / (fastest allowed speed) = max_i |u_i| / vel_i
     inverse = jnp.max(u / vel, axis=-1)
     speed = jnp.linalg.norm(v, axis=-1, keepdims=True)
-    return jnp.where(length[..., 0] > 1e-9, speed * inverse, 0.0)
+    ratio_v = jnp.where(length[..., 0] > 1e-9, speed[..., 0] * inverse, 0.0)
+    # curvature at the knot that ends each segment: q'' ~ (u_next - u) / mean length; the speed
+    # that keeps every |q''_i| sdot^2 <= acc_i is min_i sqrt(acc_i / |q''_i|)
+    signed = chord / jnp.maximum(length, 1e-12)
+    turn = jnp.diff(signed, axis=-2) / jnp.maximum(0.5 * (length[..., 1:, :] + length[..., :-1, :]), 1e-12)
+    both = (length[..., 1:, 0] > 1e-9) & (length[..., :-1, 0] > 1e-9)
+    ratio_a = jnp.where(both, speed[..., 0] * jnp.sqrt(jnp.max(jnp.abs(turn) / acc, axis=-1)), 0.0)
+    ratio_a = jnp.concatenate([ratio_a, jnp.zeros_like(ratio_a[..., :1])], axis=-1)
+    return jnp.maximum(ratio_v, ratio_a)
 
 
 def normalize_position(p: Array, lo: Array, hi: Array) -> Array:

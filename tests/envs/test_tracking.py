@@ -37,9 +37,12 @@ def test_observation_layout_matches_reference_size(env):
 
 def test_speed_limit_block_shows_the_speed_over_each_segments_fastest():
     """``observe_speed_limits``: ``n_next`` more entries after the papers' 94, each segment's
-    ``|v| max_i(|u_i| / vel_i)`` mapped from [0, 2] to [-1, 1]: -1 at rest, 0 where the current speed
-    puts the binding joint exactly at its limit along the segment; checked against a hand
-    computation on an off-path state, and the zero-length segments beyond the end give -1."""
+    ratio mapped from [0, 2] to [-1, 1]: the larger of ``|v| max_i(|u_i| / vel_i)`` (velocity
+    limits along the chord ``u``) and ``|v| sqrt(max_i |q''_i| / acc_i)`` at the knot ending the
+    segment (acceleration limits on the turn to the next chord); -1 at rest, 0 where the current
+    speed puts the binding joint exactly at its limit; checked against a hand computation on an
+    off-path state; a right-angle turn on a toy polyline gives the known ratio; zero-length
+    segments beyond the end give 0."""
     from mjx_pathtrack.deploy.export import env_observation_layout
     from mjx_pathtrack.envs.tracking import segment_speed_ratios
 
@@ -56,13 +59,24 @@ def test_speed_limit_block_shows_the_speed_over_each_segments_fastest():
     window = S.knot_window(env.reference(track), track.s, 8)
     knots = np.asarray(window.knots, np.float64)
     chords = np.diff(knots, axis=0)
-    expect = [np.linalg.norm(v) * np.max(np.abs(c) / np.linalg.norm(c) / np.asarray(lim.vel)) for c in chords]
+    vel, acc, speed = np.asarray(lim.vel), np.asarray(lim.acc), np.linalg.norm(v)
+    expect = [speed * np.max(np.abs(c) / np.linalg.norm(c) / vel) for c in chords]
+    for k in range(len(chords) - 1):   # the turn at knot k + 1
+        c0, c1 = chords[k], chords[k + 1]
+        if np.linalg.norm(c0) > 1e-9 and np.linalg.norm(c1) > 1e-9:
+            q2 = (c1 / np.linalg.norm(c1) - c0 / np.linalg.norm(c0)) / (0.5 * (np.linalg.norm(c0) + np.linalg.norm(c1)))
+            expect[k] = max(expect[k], speed * np.sqrt(np.max(np.abs(q2) / acc)))
     obs = np.asarray(env.observe(track._replace(v=jnp.asarray(v, jnp.float32))))
     np.testing.assert_allclose(obs[94:], np.clip(-1 + np.array(expect), -1, 1), atol=1e-5)
     assert np.any(np.abs(obs[94:]) < 0.999)   # the check above is not all clipped
     # segments past the end knot have no length: ratio 0
     end = np.repeat(knots[-1:], 3, axis=0)
-    np.testing.assert_array_equal(np.asarray(segment_speed_ratios(jnp.asarray(end), jnp.asarray(v), lim.vel)), 0.0)
+    np.testing.assert_array_equal(np.asarray(segment_speed_ratios(jnp.asarray(end), jnp.asarray(v), lim.vel, lim.acc)), 0.0)
+    # a right angle after two 0.1 rad chords at 1 rad/s, limits 2 rad/s and 10 rad/s^2: the chords
+    # allow 2 rad/s (ratio 0.5); the turn q'' = (0, 1) - (1, 0) over 0.1 rad allows 1 rad/s (ratio 1)
+    toy = jnp.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0], [0.2, 0.1], [0.2, 0.1]])
+    np.testing.assert_allclose(np.asarray(segment_speed_ratios(toy, jnp.array([1.0, 0.0]), jnp.array([2.0, 2.0]),
+                                                               jnp.array([10.0, 10.0]))), [0.5, 1.0, 0.5, 0.0], atol=1e-6)
     assert env_observation_layout(env)[-1] == {"name": "speed_limits", "start": 94, "size": 8}
 
 
