@@ -23,6 +23,7 @@ from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs import episodes
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
+from mjx_pathtrack.evaluation.geometry import SAMPLE_SPACING, polyline_distance, rotation_angle, sample_executed  # noqa: F401  (re-exported)
 
 Array = jax.Array
 Policy = episodes.Policy
@@ -206,8 +207,6 @@ def make_evaluator(env: PathTrackingEnv, make_inference_fn, n_episodes: int, max
 # Full evaluation (paper 000 §IV, docs/method.md §6): recorded rollout + NumPy post-processing
 # ---------------------------------------------------------------------------------------------
 
-#: arc-length spacing [rad] of the samples of the whole executed path (docs/method.md §6)
-SAMPLE_SPACING = 0.01
 #: tolerance of the limit audit (normalised units)
 AUDIT_TOLERANCE = 1e-6
 TERMINATION_REASONS = ("stopped_at_end", "deviation", "task_failed", "time_budget", "not_done")
@@ -269,23 +268,6 @@ def executed_polyline(ro: Rollout, b: int) -> np.ndarray:
     return np.concatenate([q[0, :1], q[:, 1:].reshape(-1, q.shape[-1])])
 
 
-def sample_executed(points: np.ndarray, path_joints: np.ndarray, spacing: float = SAMPLE_SPACING
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples of an executed polyline ``points [P, n]`` every ``spacing`` of path-joint arc
-    length from the start (start excluded; a motion shorter than ``spacing`` gives its end point).
-    Returns ``(offsets [M] rad, positions [M, n])`` (linear interpolation between sub-steps)."""
-    seg = np.linalg.norm(np.diff(points[:, path_joints], axis=0), axis=-1)
-    keep = np.concatenate([[True], seg > 0])
-    points = points[keep]
-    cum = np.concatenate([[0.0], np.cumsum(seg[seg > 0])])
-    total = cum[-1]
-    count = int(np.floor(total / spacing + 1e-9))
-    offsets = spacing * np.arange(1, count + 1) if count else np.array([total])
-    if len(points) == 1:
-        return offsets, np.repeat(points, len(offsets), 0)
-    return offsets, np.stack([np.interp(offsets, cum, points[:, j]) for j in range(points.shape[1])], -1)
-
-
 def _pad(rows: list[np.ndarray], fill: float) -> tuple[np.ndarray, np.ndarray]:
     width = max(len(r) for r in rows)
     out = np.full((len(rows), width) + rows[0].shape[1:], fill, np.float64)
@@ -300,12 +282,6 @@ def reference_points(paths: S.Path, s: Array) -> Array:
     """Reference positions ``[B, M, m]`` of a stacked path batch ``[B]`` at arc lengths ``s [B, M]``
     (clamped to each path's end)."""
     return jax.vmap(S.point_at)(paths, s)
-
-
-def rotation_angle(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
-    """Angle [rad] between rotations ``[..., 3, 3]`` (= 2 arccos |<q1, q2>| of the quaternions)."""
-    cos = (np.einsum("...ij,...ij->...", r1, r2) - 1.0) / 2.0
-    return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
 def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float = SAMPLE_SPACING,
@@ -377,47 +353,6 @@ def episode_table(env: PathTrackingEnv, ro: Rollout, robot=None, spacing: float 
     ratios = np.where(ro.live[..., None, None], ro.limit_ratio, 0.0).max(axis=(0, 3))  # [B, 4]
     for i, q in enumerate(("pos", "vel", "acc", "jerk")):
         out[f"max_{q}_ratio"] = ratios[:, i]
-    return out
-
-
-def polyline_distance(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
-    """Distance from each of ``points [M, d]`` to the polyline through ``curve [R, d]`` (its
-    nearest point on any segment; ``R = 1``: the distance to that point). Same units as the
-    inputs; returns ``[M]``."""
-    points, curve = np.asarray(points, np.float64), np.asarray(curve, np.float64)
-    if len(curve) == 1:
-        return np.linalg.norm(points - curve[0], axis=-1)
-    if len(curve) <= 64:
-        return _segment_distance(points, curve, np.arange(len(curve) - 1)[None])
-    # exact with a KD-tree: a segment whose endpoints are both further than d + L/2 (L: the
-    # longest segment) cannot be nearer than a distance d already found; the segments next to the
-    # k nearest vertices are checked, and every point whose k-th vertex is not that far is
-    # checked against all segments
-    from scipy.spatial import cKDTree
-
-    k = min(16, len(curve))
-    dist, idx = cKDTree(curve).query(points, k=k)
-    seg = np.concatenate([np.clip(idx - 1, 0, len(curve) - 2), np.clip(idx, 0, len(curve) - 2)], axis=1)
-    best = _segment_distance(points, curve, seg)
-    half = 0.5 * np.linalg.norm(np.diff(curve, axis=0), axis=-1).max()
-    unsure = dist[:, -1] <= best + half
-    if unsure.any():
-        best[unsure] = _segment_distance(points[unsure], curve, np.arange(len(curve) - 1)[None])
-    return best
-
-
-def _segment_distance(points: np.ndarray, curve: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Distance ``[M]`` from each of ``points [M, d]`` to the nearest of the polyline segments
-    ``segments [M or 1, S]`` (indices ``i``: from ``curve[i]`` to ``curve[i + 1]``), in chunks."""
-    out = np.empty(len(points))
-    chunk = max(1, 2_000_000 // max(segments.shape[1], 1))
-    for i in range(0, len(points), chunk):
-        p = points[i:i + chunk]
-        sg = segments if segments.shape[0] == 1 else segments[i:i + chunk]
-        a, ab = curve[sg], curve[sg + 1] - curve[sg]                       # [m, S, d]
-        length2 = np.maximum(np.einsum("msd,msd->ms", ab, ab), 1e-30)
-        t = np.clip(np.einsum("msd,msd->ms", p[:, None] - a, ab) / length2, 0.0, 1.0)
-        out[i:i + chunk] = np.linalg.norm(p[:, None] - (a + t[..., None] * ab), axis=-1).min(axis=1)
     return out
 
 

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from mjx_pathtrack.evaluation import baseline
 from mjx_pathtrack.evaluation import report as R
+from mjx_pathtrack.evaluation import geometry as G
 from mjx_pathtrack.evaluation import rollout as E
 from mjx_pathtrack.robots import registry as robots
 from mjx_pathtrack.core import spline as S
@@ -105,8 +106,8 @@ def test_polyline_distance_with_a_kd_tree_is_exact():
     curve = np.cumsum(rng.normal(size=(3000, 3)) * 0.01, 0)
     points = np.concatenate([curve[rng.integers(0, 3000, 300)] + rng.normal(size=(300, 3)) * 0.003,
                              rng.normal(size=(50, 3))])
-    brute = E._segment_distance(points, curve, np.arange(len(curve) - 1)[None])
-    np.testing.assert_array_equal(E.polyline_distance(points, curve), brute)
+    brute = G._segment_distance(points, curve, np.arange(len(curve) - 1)[None])
+    np.testing.assert_array_equal(G.polyline_distance(points, curve), brute)
 
 
 def test_polyline_distance_known_answers():
@@ -114,8 +115,8 @@ def test_polyline_distance_known_answers():
     outside, one beyond the end, one on the curve; a one-point curve is that point."""
     curve = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])
     points = np.array([[0.5, -0.2], [1.3, -0.4], [1.0, 1.5], [1.0, 0.25]])
-    np.testing.assert_allclose(E.polyline_distance(points, curve), [0.2, 0.5, 0.5, 0.0], atol=1e-12)
-    np.testing.assert_allclose(E.polyline_distance(points, curve[:1]), np.linalg.norm(points, axis=-1))
+    np.testing.assert_allclose(G.polyline_distance(points, curve), [0.2, 0.5, 0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(G.polyline_distance(points, curve[:1]), np.linalg.norm(points, axis=-1))
 
 
 def test_contour_deviation_leaves_out_the_arc_length_drift(iiwa):

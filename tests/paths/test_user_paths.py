@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mjx_pathtrack.core.knot_rule import KnotRule
-from mjx_pathtrack.evaluation.rollout import polyline_distance
+from mjx_pathtrack.evaluation.geometry import polyline_distance
 from mjx_pathtrack.core.spline_fit import fit_spline
 from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.paths import user_paths as UP
