@@ -417,3 +417,29 @@ def replace_ahead(path: Path, s: Array, new_knots: Array, n_new: Array | None = 
     table_s = jnp.where(tj <= n_valid, table_s, table_s[n_valid])
     knot_s = jnp.where(kar < n_knots, table_s[kar * m_samples], table_s[n_valid])
     return Path(knots, n_knots, knot_s, h, coeffs, table_s, table_dtds)
+
+
+def drop_behind(path: Path, s: Array) -> tuple[Path, Array]:
+    """The same reference without the knots before the one at or before ``s`` [rad] (knot0 of
+    the observation), arc positions shifted so that knot0 is at 0; returns ``(path', s')``, same
+    array shapes (jittable). Keeps the capacity of a fixed-size path for knots ahead when the
+    reference is adjusted often (:class:`~mjx_pathtrack.deploy.controller.OnlineTracker`)."""
+    kmax = path.knots.shape[0]
+    m = path.samples_per_segment
+    end = path.n_knots - 1
+    i0 = knot_window(path, s, 0).index[0]
+    base = path.knot_s[i0]
+    n_knots = path.n_knots - i0
+    n_valid_old = end * m
+    kar, sar, tar = jnp.arange(kmax), jnp.arange(kmax - 1), jnp.arange(path.table_s.shape[0])
+    knots = path.knots[jnp.minimum(kar + i0, end)]
+    knot_s = path.knot_s[jnp.minimum(kar + i0, end)] - base
+    h = path.h[jnp.minimum(sar + i0, kmax - 2)]
+    end_knot = path.knots[end]
+    pad = jnp.zeros_like(path.coeffs[0]).at[0].set(end_knot)
+    coeffs = jnp.where((sar < n_knots - 1)[:, None, None], path.coeffs[jnp.minimum(sar + i0, kmax - 2)], pad)
+    ti = jnp.minimum(tar + i0 * m, n_valid_old)
+    table_s = path.table_s[ti] - base
+    table_dtds = path.table_dtds[ti]
+    new = Path(knots, n_knots.astype(path.n_knots.dtype), knot_s, h, coeffs, table_s, table_dtds)
+    return new, jnp.maximum(s - base, 0.0)

@@ -463,7 +463,7 @@ def _replace_core(track: TrackState, padded: Array, count: Array):
     """``update_path`` (jitted): drop the knots behind, replace the reference ahead of ``s``;
     returns the new state, the knot count and the count expected if nothing was dropped."""
     s = jnp.clip(track.s, 0.0, track.path.length)
-    path, s = _drop_behind(track.path, s)
+    path, s = S.drop_behind(track.path, s)
     # replace_ahead keeps the knots up to the segment of s, then q(s), then the new knots
     seg, _ = S.locate(path, s)
     new_path = S.replace_ahead(path, s, padded, count)
@@ -488,28 +488,3 @@ def _at_rest(limits: L.JointLimits, v: Array, a: Array) -> Array:
 #: jitted cores per tracker configuration (limits, dt, rate, N, knot scale, path joints, max_knots)
 _COMPILED: dict = {}
 _checked_range = jax.jit(L.safe_acceleration_range_checked, static_argnums=(4,))
-
-
-def _drop_behind(path: S.Path, s: Array) -> tuple[S.Path, Array]:
-    """The same reference without the knots before the one at or before ``s`` (knot0 of the
-    observation), arc positions shifted so that knot0 is at 0; returns ``(path', s')``. Keeps
-    the capacity of a fixed-size path for knots ahead when the reference is adjusted often."""
-    kmax = path.knots.shape[0]
-    m = path.samples_per_segment
-    end = path.n_knots - 1
-    i0 = S.knot_window(path, s, 0).index[0]
-    base = path.knot_s[i0]
-    n_knots = path.n_knots - i0
-    n_valid_old = end * m
-    kar, sar, tar = jnp.arange(kmax), jnp.arange(kmax - 1), jnp.arange(path.table_s.shape[0])
-    knots = path.knots[jnp.minimum(kar + i0, end)]
-    knot_s = path.knot_s[jnp.minimum(kar + i0, end)] - base
-    h = path.h[jnp.minimum(sar + i0, kmax - 2)]
-    end_knot = path.knots[end]
-    pad = jnp.zeros_like(path.coeffs[0]).at[0].set(end_knot)
-    coeffs = jnp.where((sar < n_knots - 1)[:, None, None], path.coeffs[jnp.minimum(sar + i0, kmax - 2)], pad)
-    ti = jnp.minimum(tar + i0 * m, n_valid_old)
-    table_s = path.table_s[ti] - base
-    table_dtds = path.table_dtds[ti]
-    new = S.Path(knots, n_knots.astype(path.n_knots.dtype), knot_s, h, coeffs, table_s, table_dtds)
-    return new, jnp.maximum(s - base, 0.0)

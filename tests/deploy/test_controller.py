@@ -11,7 +11,7 @@ from pathlib import Path
 from mjx_pathtrack.robots import iiwa
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import spline as S
-from mjx_pathtrack.deploy.controller import OnlineTracker, PathError, Status, _drop_behind
+from mjx_pathtrack.deploy.controller import OnlineTracker, PathError, Status
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
 
 DT = 0.1
@@ -357,7 +357,7 @@ def test_drop_behind_keeps_the_reference_ahead():
     knots = np.cumsum(rng.uniform(-0.2, 0.2, (9, 3)), axis=0)
     path = S.make_path(knots, 12)
     s = 0.6 * float(path.length)
-    shifted, s1 = _drop_behind(path, jnp.asarray(s))
+    shifted, s1 = S.drop_behind(path, jnp.asarray(s))
     assert int(shifted.n_knots) < int(path.n_knots)
     ahead = np.linspace(0.0, float(path.length) - s, 25)
     np.testing.assert_allclose(np.asarray(S.point_at(shifted, s1 + ahead)), np.asarray(S.point_at(path, s + ahead)),
