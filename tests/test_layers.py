@@ -73,3 +73,10 @@ def test_no_import_circle_between_modules():
                     seen.add(nxt)
                     stack.append((nxt, trail + (nxt,)))
     assert not circles, "import circles:\n" + "\n".join(sorted(set(circles)))
+
+
+def test_no_module_over_500_lines():
+    """Small modules, one concept each: none of the package's modules grows past 500 lines."""
+    long = {str(f.relative_to(PACKAGE)): n for f in PACKAGE.rglob("*.py")
+            if (n := len(f.read_text().splitlines())) > 500}
+    assert not long, f"modules over 500 lines (split them by concept): {long}"
