@@ -40,7 +40,7 @@ import dataclasses
 import enum
 import functools
 from types import SimpleNamespace
-from typing import Callable, NamedTuple, NoReturn
+from typing import Callable, NoReturn
 
 import jax
 import jax.numpy as jnp
@@ -50,6 +50,7 @@ from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.core.knot_rule import KnotRule
 from mjx_pathtrack.deploy.export import MANIFEST_ENV_SETTINGS, env_settings, manifest_knot_rule
+from mjx_pathtrack.deploy.tracker_step import Core, at_rest, replace_core, step_core
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv, TrackState
 from mjx_pathtrack.paths.datasets import DatasetError
 from mjx_pathtrack.paths.user_paths import PreparedPath, into_limits, prepare_path
@@ -63,8 +64,6 @@ Array = jax.Array
 MAX_KNOTS = 256
 #: a first knot of ``set_path`` this close [rad] to the current position replaces it
 START_TOLERANCE = 1e-4
-#: |v| <= STOP_FRACTION * vel and |a| <= STOP_FRACTION * acc of every joint count as stopped
-STOP_FRACTION = 1e-6
 #: relative tolerance of ``controller_dt`` dividing ``dt``
 RATE_TOLERANCE = 1e-9
 
@@ -103,11 +102,6 @@ class TrackerOutput:
     reached_end: bool
     fault: str | None
     action: np.ndarray
-
-
-class _Core(NamedTuple):
-    track: TrackState     # the environment's state (p, v, a, s, path, braking at the end, ...)
-    fault: Array          # [] bool: brake regardless of the path (bad path/action, no path)
 
 
 class OnlineTracker:
@@ -198,6 +192,7 @@ class OnlineTracker:
         self.policy, self.limits, self.dt, self.controller_dt, self.substeps = policy, limits, dt, controller_dt, k
         self.max_knots = int(max_knots)
         self.path_joints = np.arange(n) if path_joints is None else np.asarray(path_joints, np.int64)
+        self.robot_name = None if manifest is None else manifest["robot"]
         if self.path_joints.ndim != 1 or len(self.path_joints) == 0 or len(set(self.path_joints.tolist())) != len(
                 self.path_joints) or self.path_joints.min() < 0 or self.path_joints.max() >= n:
             raise ValueError(f"path_joints must be distinct joint indices in [0, {n}), got {path_joints}")
@@ -229,7 +224,7 @@ class OnlineTracker:
                            s_start=jnp.zeros(()), path_index=jnp.zeros((), jnp.int32), n_knots=placeholder.n_knots,
                            steps=jnp.zeros((), jnp.int32), max_steps=jnp.asarray(np.iinfo(np.int32).max, jnp.int32),
                            braking=jnp.ones((), bool), rng=jax.random.PRNGKey(0), path=placeholder, executor=None)
-        self._core = _Core(track, jnp.ones((), bool))
+        self._core = Core(track, jnp.ones((), bool))
         self._fault: str | None = "no path set"
         self._has_path = False
         self._time_steps = 0
@@ -237,7 +232,7 @@ class OnlineTracker:
         key = (tuple(np.asarray(x).tobytes() for x in jax.tree.leaves(limits)), config,
                float(max_dis_between_knots), tuple(self.path_joints.tolist()), self.max_knots)
         if key not in _COMPILED:
-            _COMPILED[key] = (jax.jit(functools.partial(_step_core, self.env, controller_dt)), jax.jit(_replace_core),
+            _COMPILED[key] = (jax.jit(functools.partial(step_core, self.env, controller_dt)), jax.jit(replace_core),
                               jax.jit(self.env.observe))
         self._step_fn, self._replace_fn, self._obs_fn = _COMPILED[key]
         self._obs = self._obs_fn(track)
@@ -303,6 +298,24 @@ class OnlineTracker:
                                           braking=jnp.zeros((), bool))
         self._accept(track)
         self.path_report = report
+
+    def set_cartesian_path(self, points, robot=None) -> None:
+        """:meth:`set_path` of a tool path ``points [W, 3]`` [m] of the robot's target point, made
+        a joint path by IK from the current position (:mod:`mjx_pathtrack.paths.cartesian`:
+        continuity, limits, self-collision); ``robot``: default the policy's (its manifest's).
+        Raises :class:`PathError` naming the waypoint that cannot be followed."""
+        from mjx_pathtrack.paths.cartesian import tool_path_to_joints
+        from mjx_pathtrack.robots import registry as robots
+
+        if robot is None:
+            if self.robot_name is None:
+                raise ValueError("set_cartesian_path: pass the robot (the policy has no manifest naming it)")
+            robot = robots.load_robot(self.robot_name)
+        try:
+            joints = tool_path_to_joints(robot, points, self.position, "set_cartesian_path").joints
+        except DatasetError as e:
+            self._reject(str(e))
+        self.set_path(joints[:, self.path_joints])
 
     def update_path(self, new_knots) -> None:
         """Replace the reference ahead of the current arc position by a spline through
@@ -415,13 +428,13 @@ class OnlineTracker:
 
     def _accept(self, track: TrackState) -> None:
         self._has_path = True
-        self._core = _Core(track, jnp.zeros((), bool))
+        self._core = Core(track, jnp.zeros((), bool))
         self._fault = None
         self._obs = self._obs_fn(track)
         self._last_status = Status.BRAKING if bool(track.braking) else Status.TRACKING
 
     def _at_rest(self, v, a) -> bool:
-        return bool(_at_rest(self.limits, jnp.asarray(v), jnp.asarray(a)))
+        return bool(at_rest(self.limits, jnp.asarray(v), jnp.asarray(a)))
 
     def _joint_vector(self, x, name: str) -> np.ndarray:
         n = self.limits.n_joints
@@ -431,58 +444,6 @@ class OnlineTracker:
         if not np.all(np.isfinite(x)):
             raise ValueError(f"{name} contains NaN or inf")
         return x.astype(np.float32)
-
-
-def _step_core(env: PathTrackingEnv, controller_dt: float, core: _Core, action: Array, bad_action: Array):
-    """One decision step of the tracker (jitted per configuration): the environment's transition
-    with braking forced by a fault, setpoints at the controller instants, status, next observation."""
-    dt, k = env.config.dt, env.config.substeps
-    track = core.track
-    fault = core.fault | bad_action
-    end_braking = track.braking
-    action = jnp.where(fault, 0.0, action)
-    new, _, _, _ = env.transition(track._replace(braking=end_braking | fault), action, fastest_stop=fault)
-    length = new.path.length
-    reached = env.end_reached(new.path, new.s)
-    new = new._replace(braking=end_braking | reached)
-    braking = end_braking | fault
-    stopped = braking & _at_rest(env.limits, new.v, new.a)
-    # at rest after braking: remove the float32 residue (<= STOP_FRACTION of the limits) so
-    # that the robot holds exactly (braking from v = a = 0 keeps v = a = 0)
-    new = new._replace(v=jnp.where(stopped, 0.0, new.v), a=jnp.where(stopped, 0.0, new.a))
-    t = controller_dt * jnp.arange(1, k + 1, dtype=jnp.float32)[:, None]
-    p_set, v_set, a_set = L.integrate(track.p, track.v, track.a, new.a, dt, t)
-    # the last setpoint is the next decision state exactly
-    p_set, v_set, a_set = p_set.at[-1].set(new.p), v_set.at[-1].set(new.v), a_set.at[-1].set(new.a)
-    jerk = (new.a - track.a) / dt
-    obs = env.observe(new)
-    return _Core(new, fault), (p_set, v_set, a_set, jerk, new.s, length, reached, braking, stopped, obs)
-
-
-def _replace_core(track: TrackState, padded: Array, count: Array):
-    """``update_path`` (jitted): drop the knots behind, replace the reference ahead of ``s``;
-    returns the new state, the knot count and the count expected if nothing was dropped."""
-    s = jnp.clip(track.s, 0.0, track.path.length)
-    path, s = S.drop_behind(track.path, s)
-    # replace_ahead keeps the knots up to the segment of s, then q(s), then the new knots
-    seg, _ = S.locate(path, s)
-    new_path = S.replace_ahead(path, s, padded, count)
-    # knots dropped as duplicates of their predecessor (or of q(s)) are not lost capacity
-    pts = jnp.concatenate([S.point_at(path, s)[None], padded])
-    gap = jnp.linalg.norm(jnp.diff(pts, axis=0), axis=-1)
-    distinct = jnp.sum((gap > S.DUPLICATE_DISTANCE) & (jnp.arange(padded.shape[0]) < count))
-    expected = seg + 1 + 1 + distinct
-    # the cut point q(s) is knot seg + 1 of the new reference: take its arc position (equal to
-    # s up to rounding) so that the observation's knot0 is that point, as in the environment
-    s = new_path.knot_s[seg + 1]
-    track = track._replace(path=new_path, n_knots=new_path.n_knots, s=s, s_start=jnp.zeros(()),
-                           braking=track.braking & (s >= new_path.length))
-    return track, new_path.n_knots, expected
-
-
-def _at_rest(limits: L.JointLimits, v: Array, a: Array) -> Array:
-    """``[]`` bool: every joint's |v| and |a| within ``STOP_FRACTION`` of its limits."""
-    return jnp.all(jnp.abs(v) <= STOP_FRACTION * limits.vel) & jnp.all(jnp.abs(a) <= STOP_FRACTION * limits.acc)
 
 
 #: jitted cores per tracker configuration (limits, dt, rate, N, knot scale, path joints, max_knots)

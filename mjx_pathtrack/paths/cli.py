@@ -53,6 +53,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                             "the policy that will track them; default mixed, the iiwa's; another robot's default "
                             "is random)")
     p_imp.add_argument("--keep-knots", action="store_true", help="store the knots as given (no re-knotting)")
+    p_imp.add_argument("--cartesian", action="store_true",
+                       help="the file holds tool positions x, y, z [m] per waypoint (the robot's target point), "
+                            "turned into joint paths by IK with continuity, limit and self-collision checks")
+    p_imp.add_argument("--start", default=None, metavar="Q1,Q2,...",
+                       help="with --cartesian: the joint configuration [rad] the IK starts from (default: the "
+                            "collision-free solution of the first waypoint nearest the middle of the joint ranges)")
     p_gen = sub.add_parser("generate", help="generate a dataset (kinds: see generate.KINDS, e.g. random, target_point)")
     p_gen.add_argument("--robot", default="iiwa", choices=known_robots())
     p_gen.add_argument("--kind", default="random")
@@ -89,9 +95,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if rule_kind == "mixed" and "mixed" not in known_kinds(args.robot):
                     rule_kind = "random"
                 rule = KnotRule.of_dataset(read_config(args.robot, rule_kind))
+            if args.start is not None and not args.cartesian:
+                raise DatasetError("--start applies to --cartesian only")
+            try:
+                q_start = None if args.start is None else [float(x) for x in args.start.split(",")]
+            except ValueError:
+                raise DatasetError(f"--start must be comma-separated joint positions in rad, got {args.start!r}") from None
             directory = import_paths(args.file, args.robot, args.kind, args.split, args.root,
-                                     overwrite=args.overwrite, rule=rule, allowance=POS_BUFFER)
+                                     overwrite=args.overwrite, rule=rule, allowance=POS_BUFFER,
+                                     cartesian=args.cartesian, q_start=q_start)
             source = read_config(args.robot, args.kind, args.root)["source"][args.split]
+            if "cartesian" in source:
+                print("\n".join(source["cartesian"]["report"]))
             print(f"imported into {directory}" + ("" if rule is None else
                   f" (re-knotted by the rule of {args.robot}/{rule_kind}: largest distance from your curve "
                   f"{source['curve_distance_rad_max']:.4f} rad)")

@@ -142,8 +142,13 @@ def report_lines(prepared: Sequence[PreparedPath], rule: KnotRule | None) -> lis
 
 def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "test", root=None,
                  limits: JointLimits | None = None, joint_names: Sequence[str] | None = None,
-                 overwrite: bool = False, rule=None, allowance: float = 0.0) -> FsPath:
+                 overwrite: bool = False, rule=None, allowance: float = 0.0, cartesian: bool = False,
+                 q_start=None) -> FsPath:
     """Validate user paths and write them as ``<root>/<robot>/<kind>/<split>.npz``.
+
+    ``cartesian``: the file holds tool positions ``[W, 3]`` [m] per path instead of joint knots;
+    each becomes its joint path by IK (:func:`~mjx_pathtrack.paths.cartesian.tool_path_to_joints`,
+    from ``q_start [n]`` if given), and the largest IK residual is recorded under ``source``.
 
     ``limits``/``joint_names`` default to :func:`~mjx_pathtrack.paths.datasets.robot_limits`; knots up to ``allowance`` [rad]
     beyond the limits are moved onto them; ``rule`` (a
@@ -162,7 +167,17 @@ def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "t
     target = directory / f"{split}.npz"
     if target.exists() and not overwrite:
         raise DatasetError(f"{target} exists (use overwrite=True / --overwrite to replace it)")
-    prepared = prepare_paths(D.read_user_paths(file), limits, rule, joint_names, allowance=allowance,
+    pairs, ik_info = D.read_user_paths(file), None
+    if cartesian:
+        from mjx_pathtrack.paths.cartesian import tool_paths_to_joints
+        from mjx_pathtrack.robots import registry as robots
+
+        converted = tool_paths_to_joints(robots.load_robot(robot), pairs, q_start)
+        pairs = [(c.name, c.joints) for c in converted]
+        ik_info = {"ik_residual_mm_max": 1000 * max(float(c.residual.max()) for c in converted),
+                   "ik_points": int(sum(len(c.joints) for c in converted)),
+                   "report": [c.report_line() for c in converted]}
+    prepared = prepare_paths(pairs, limits, rule, joint_names, allowance=allowance,
                              prefix=f"{FsPath(file).name}: ")
     paths = [p.knots for p in prepared]
 
@@ -182,6 +197,7 @@ def import_paths(file: str | os.PathLike, robot: str, kind: str, split: str = "t
     config.setdefault("source", {})[split] = {
         "type": "import", "file": FsPath(file).name, "knot_rule": None if rule is None else rule.to_json(),
         "curve_distance_rad_max": max(p.joint_distance for p in prepared),
-        "limit_shift_rad_max": max(p.limit_shift for p in prepared)}
+        "limit_shift_rad_max": max(p.limit_shift for p in prepared),
+        **({} if ik_info is None else {"cartesian": ik_info})}
     D.write_config(cfg_file, config)
     return directory
