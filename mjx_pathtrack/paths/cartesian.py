@@ -31,6 +31,8 @@ MAX_RESIDUAL = 1e-3
 MAX_JOINT_JUMP = 0.15
 #: start configurations tried for the first waypoint when no ``q_start`` is given
 START_SEEDS = 64
+#: IK settings of one solve seeded with the previous point's solution (5 mm away)
+TRACK_IK = dict(iterations=30, damping=0.02, max_step=0.1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +76,7 @@ def densify(points: np.ndarray, spacing: float = SOLVE_SPACING) -> tuple[np.ndar
     rows, out = [0], [points[:1]]
     for a, b in zip(points[:-1], points[1:]):
         k = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
-        out.append(a + (b - a) * (np.arange(1, k + 1) / k)[:, None])
+        out.append(a + (b - a) * np.arange(1, k + 1)[:, None] / k)
         rows.append(rows[-1] + k)
     return np.concatenate(out), np.asarray(rows)
 
@@ -123,7 +125,7 @@ def tool_path_to_joints(robot, points, q_start=None, name: str = "path") -> Join
     q = _first_solution(robot, dense[0], q_start, name)
     joints, residual = [], []
     for i, target in enumerate(dense):
-        sol = ik.solve_ik(robot, target[None, None], q[None], iterations=30, damping=0.02, max_step=0.1)
+        sol = ik.solve_ik(robot, target[None, None], q[None], **TRACK_IK)
         q_new, err = np.asarray(sol.q, np.float64)[0], float(np.asarray(sol.error)[0])
         if err > MAX_RESIDUAL:
             raise DatasetError(f"{name}: waypoint {waypoint[i]} ({_xyz(given[waypoint[i]])}) cannot be followed: the "

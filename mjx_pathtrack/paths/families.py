@@ -35,11 +35,10 @@ from typing import Callable
 import numpy as np
 
 from mjx_pathtrack.core.spline_fit import fit_spline
+from mjx_pathtrack.paths.cartesian import MAX_JOINT_JUMP, SOLVE_SPACING, TRACK_IK, densify
 
 #: Cartesian sample spacing of the IK families [m]
-CARTESIAN_STEP = 0.005
-#: consecutive IK solutions further apart than this [rad] in any joint count as a branch flip
-MAX_JOINT_JUMP = 0.15
+CARTESIAN_STEP = SOLVE_SPACING
 #: arc spacing [rad] of the collision and limit checks
 CHECK_STEP = 0.01
 
@@ -84,7 +83,7 @@ def _ik_track(robot, points: list[np.ndarray], q0: np.ndarray) -> list[np.ndarra
     ok = np.ones(len(points), bool)
     out = []
     for i in range(count.max()):
-        sol = ik.solve_ik(robot, padded[:, i, None], q, iterations=30, damping=0.02, max_step=0.1)
+        sol = ik.solve_ik(robot, padded[:, i, None], q, **TRACK_IK)
         qn = np.asarray(sol.q, np.float64)
         live = i < count
         ok &= ~live | (np.asarray(sol.converged) & (np.max(np.abs(qn - q), axis=-1) <= MAX_JOINT_JUMP))
@@ -151,11 +150,7 @@ def _polyline(rng, x0: np.ndarray) -> np.ndarray:
     for _ in range(rng.integers(2, 5)):
         d = rng.normal(size=3)
         corners.append(corners[-1] + rng.uniform(0.10, 0.40) * d / np.linalg.norm(d))
-    pts = [corners[0][None]]
-    for a, b in zip(corners[:-1], corners[1:]):
-        k = max(int(np.ceil(np.linalg.norm(b - a) / CARTESIAN_STEP)), 1)
-        pts.append(a + (b - a) * np.arange(1, k + 1)[:, None] / k)
-    return np.concatenate(pts)[1:]
+    return densify(np.stack(corners), CARTESIAN_STEP)[0][1:]
 
 
 def _circle(rng, x0: np.ndarray) -> np.ndarray:
