@@ -443,15 +443,14 @@ def segment_speed_ratios(knots: Array, v: Array, vel: Array, acc: Array) -> Arra
     the path end) gives 0, and a turn next to one counts as none."""
     chord = jnp.diff(knots, axis=-2)
     length = jnp.linalg.norm(chord, axis=-1, keepdims=True)
-    u = jnp.abs(chord) / jnp.maximum(length, 1e-12)
+    u = chord / jnp.maximum(length, 1e-12)
     # 1 / (fastest allowed speed) = max_i |u_i| / vel_i
-    inverse = jnp.max(u / vel, axis=-1)
+    inverse = jnp.max(jnp.abs(u) / vel, axis=-1)
     speed = jnp.linalg.norm(v, axis=-1, keepdims=True)
     ratio_v = jnp.where(length[..., 0] > 1e-9, speed[..., 0] * inverse, 0.0)
     # curvature at the knot that ends each segment: q'' ~ (u_next - u) / mean length; the speed
     # that keeps every |q''_i| sdot^2 <= acc_i is min_i sqrt(acc_i / |q''_i|)
-    signed = chord / jnp.maximum(length, 1e-12)
-    turn = jnp.diff(signed, axis=-2) / jnp.maximum(0.5 * (length[..., 1:, :] + length[..., :-1, :]), 1e-12)
+    turn = jnp.diff(u, axis=-2) / jnp.maximum(0.5 * (length[..., 1:, :] + length[..., :-1, :]), 1e-12)
     both = (length[..., 1:, 0] > 1e-9) & (length[..., :-1, 0] > 1e-9)
     ratio_a = jnp.where(both, speed[..., 0] * jnp.sqrt(jnp.max(jnp.abs(turn) / acc, axis=-1)), 0.0)
     ratio_a = jnp.concatenate([ratio_a, jnp.zeros_like(ratio_a[..., :1])], axis=-1)
