@@ -95,8 +95,8 @@ def option_problem(args) -> str | None:
         (args.plot_episode < 0, f"--plot-episode must be >= 0, got {args.plot_episode}"),
         (args.timing_decisions < 0, f"--timing-decisions must be >= 0, got {args.timing_decisions}"),
         (args.workers < 1, f"--workers must be >= 1, got {args.workers}"),
-        (args.terminate_deviation is not None and not 0 < args.terminate_deviation < inf,
-         f"--terminate-deviation must be a finite number > 0, got {args.terminate_deviation}"),
+        (args.terminate_deviation is not None and not args.terminate_deviation > 0,   # inf: no deviation limit
+         f"--terminate-deviation must be a number > 0 (inf: no limit), got {args.terminate_deviation}"),
         (args.end_knot_tolerance is not None and not 0 < args.end_knot_tolerance < inf,
          f"--end-knot-tolerance must be a finite number > 0, got {args.end_knot_tolerance}"),
         (args.end_tolerance is not None and not 0 <= args.end_tolerance < inf,

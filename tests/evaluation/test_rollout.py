@@ -345,7 +345,7 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--end-tolerance must be a finite number >= 0" in err
     assert "no run or export directory" in err and "6 joint values" in err
-    assert "--terminate-deviation must be a finite number > 0" in err
+    assert "--terminate-deviation must be a number > 0 (inf: no limit)" in err
 
 
 @pytest.mark.parametrize("options, message", [
@@ -355,6 +355,7 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     (["--timing-decisions", "-5"], "--timing-decisions must be >= 0"),
     (["--workers", "0"], "--workers must be >= 1"),
     (["--end-knot-tolerance", "0"], "--end-knot-tolerance must be a finite number > 0"),
+    (["--terminate-deviation", "nan"], "--terminate-deviation must be a number > 0 (inf: no limit), got nan"),
     (["--keep-knots"], "--keep-knots applies to --paths only"),
     (["--checkpoint", "last"], "--checkpoint must be 'latest' or a step"),
 ])
@@ -368,6 +369,19 @@ def test_evaluate_option_errors_are_one_line_before_anything_loads(tmp_path, opt
     assert "rc 2 jax imported False" in result.stdout, result.stdout + result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("evaluate.py: error: ") and message in lines[0], result.stderr
+
+
+def test_evaluate_accepts_no_deviation_limit():
+    """``--terminate-deviation inf`` (documented: evaluate without the deviation limit, e.g. whether a
+    fall follows a deviation) passes the option checks; 0 and nan do not."""
+    spec = importlib.util.spec_from_file_location("evaluate_cli", REPO / "evaluate.py")
+    evaluate = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(evaluate)
+
+    assert evaluate.option_problem(evaluate.parse_args([str(REPO), "--terminate-deviation", "inf"])) is None
+    for bad in ("0", "nan", "-0.1"):
+        problem = evaluate.option_problem(evaluate.parse_args([str(REPO), "--terminate-deviation", bad]))
+        assert problem is not None and problem.startswith("--terminate-deviation must be a number > 0"), problem
 
 
 @pytest.mark.slow
