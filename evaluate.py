@@ -1,6 +1,6 @@
 """Evaluate a trained path-tracking policy: the paper 000 §IV tables (I, VI, IX) and a limit audit.
 
-    python evaluate.py runs/iiwa_random                 # run dir: config.json + params.pkl
+    python evaluate.py runs/iiwa_random                 # run dir: config.json + params.msgpack
     python evaluate.py runs/iiwa_random/export          # exported policy (manifest.json)
     python evaluate.py RUN --checkpoint latest          # a run still training: its newest checkpoint
     python evaluate.py RUN --paths my_paths.csv         # user paths (datasets import format)
@@ -18,6 +18,7 @@ import dataclasses
 import sys
 
 import mjx_pathtrack
+from mjx_pathtrack.config.stored import ALLOW_PICKLE_HELP  # (NumPy only)
 
 mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 
@@ -25,9 +26,10 @@ mjx_pathtrack.prepare_xla()  # before JAX starts: the CPU flag batched MJX needs
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", metavar="RUN_DIR_OR_EXPORT")
+    parser.add_argument("--allow-pickle", action="store_true", help=ALLOW_PICKLE_HELP)
     parser.add_argument("--checkpoint", default=None, metavar="latest|STEP",
                         help="a run directory's checkpoint (a run still training or cut off) instead of its final "
-                             "params.pkl; default output SOURCE/eval_STEP")
+                             "params.msgpack; default output SOURCE/eval_STEP")
     parser.add_argument("--paths", default=None,
                         help="user path file (.npz/.json/.csv) instead of the dataset split; each path is re-knotted "
                              "by the policy's knot rule (its training data's), knots up to the URDF limits are moved "
@@ -120,7 +122,8 @@ def main(argv=None) -> int:
     from mjx_pathtrack.paths.datasets import DatasetError
 
     try:
-        source = R.load_policy_source(args.source, deterministic=not args.stochastic, checkpoint=args.checkpoint)
+        source = R.load_policy_source(args.source, deterministic=not args.stochastic, checkpoint=args.checkpoint,
+                                      allow_pickle=args.allow_pickle)
         # the training config's settings that the flags above replace (unset flags keep them)
         overrides = {name: getattr(args, name) for name in ("terminate_deviation", "end_braking", "end_stop",
                                                             "end_knot_tolerance", "end_tolerance", "ball_physics")}

@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 import mjx_pathtrack
+from mjx_pathtrack.config.stored import ALLOW_PICKLE_HELP  # (NumPy only)
 
 
 def parse_args(argv=None):
@@ -54,6 +55,8 @@ def parse_args(argv=None):
                         help="continue the run in --out exactly from its last checkpoint (same config)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run that --out holds (without it, a directory holding a run is refused)")
+    parser.add_argument("--allow-pickle", action="store_true",
+                        help="--resume / --init-from: " + ALLOW_PICKLE_HELP)
     parser.add_argument("--compilation-cache", default=None, metavar="DIR",
                         help="keep JAX's persistent compilation cache in DIR (default: none, unless "
                              "JAX_COMPILATION_CACHE_DIR is set): a repeated run skips most compilation, and Brax's "
@@ -131,7 +134,7 @@ def main(argv=None) -> int:
 
     print(f"devices: {jax.devices()}", flush=True)
     try:
-        train(config, args.out, resume=args.resume, overwrite=args.overwrite)
+        train(config, args.out, resume=args.resume, overwrite=args.overwrite, allow_pickle=args.allow_pickle)
     except (ConfigError, RunDirError, DatasetError) as e:
         print(f"train.py: error: {e}", file=sys.stderr)
         return 2
@@ -147,7 +150,7 @@ def run_summary(run: Path) -> str:
     def held(names):
         return ", ".join(n + ("/" if (run / n).is_dir() else "") for n in names if (run / n).exists())
 
-    lines = [f"\nrun directory {run}: {held(['config.json', 'progress.csv', 'tensorboard', 'checkpoints', 'params.pkl', 'report.json', 'export'])}",
+    lines = [f"\nrun directory {run}: {held(['config.json', 'progress.csv', 'tensorboard', 'checkpoints', 'params.msgpack', 'report.json', 'export'])}",
              f"  export/: {held(['export/manifest.json', 'export/policy.jaxexport', 'export/policy.onnx']).replace('export/', '')}",
              f"  python evaluate.py {run}/export                      # the deployed policy on the test paths",
              f"  python evaluate.py {run} --stochastic                # the sampled policy beside it",

@@ -1,6 +1,6 @@
 """Add ``export/policy.onnx`` to run directories trained before exports held one.
 
-For each run: the deterministic policy rebuilt from the run's ``config.json`` and ``params.pkl``
+For each run: the deterministic policy rebuilt from the run's ``config.json`` and ``params.msgpack``
 (as ``evaluate.py RUN`` does), converted to ONNX with jax2onnx and checked against the run's own
 ``export/policy.jaxexport`` on 10,000 observations; ``policy.onnx`` is written if they agree
 within 1e-5, the manifest's ``onnx`` entry (the figure, or why there is no file) in any case. New runs get the file from ``train.py`` itself.
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
         try:
             source = load_policy_source(run)
             if source.kind != "run":
-                raise EvaluationError(f"{run} is an export; give its run directory (config.json + params.pkl)")
+                raise EvaluationError(f"{run} is an export; give its run directory (config.json + params.msgpack)")
             key = jax.random.PRNGKey(0)
             entry = attach_onnx(Path(run) / "export", lambda obs: jnp.clip(source.policy(obs, key), -1.0, 1.0))
         except (EvaluationError, ExportError) as e:

@@ -3,7 +3,7 @@
     python scripts/velocity_policy_diag.py RUN_DIR [--seed 3]
 
 ``RUN_DIR`` is a run of ``python -m mjx_pathtrack.rl.velocity_max_train train`` (config.json +
-params.pkl). The optimal policy takes a = sign(v) = ±1 and reverses at the position limits, so
+params.msgpack). The optimal policy takes a = sign(v) = ±1 and reverses at the position limits, so
 the script prints per joint: mean |a| (the action before the environment clips it to [-1, 1]),
 the share of steps with |a| > 0.95, the share of moving steps (|v| > 0.05 v_max) in which
 sign(a) = sign(v), the share of steps at rest (|v| <= 0.05 v_max) and the mean |v| / v_max.
@@ -12,7 +12,6 @@ sign(a) = sign(v), the share of steps at rest (|v| <= 0.05 v_max) and the mean |
 from __future__ import annotations
 
 import argparse
-import pickle
 from pathlib import Path
 
 from mjx_pathtrack.rl import velocity_max_train as T  # first: the package sets the XLA flags
@@ -28,12 +27,13 @@ def main() -> None:
     args = parser.parse_args()
     from brax.training.agents.ppo import networks as ppo_nets
 
+    from mjx_pathtrack.config.stored import read_params
     from mjx_pathtrack.deploy.networks import policy_networks
 
     run = Path(args.run)
     config = T.VelocityTrainConfig.from_json((run / "config.json").read_text())
     env = T.make_env(config)
-    params = pickle.loads((run / "params.pkl").read_bytes())
+    params, _ = read_params(run)
     nets = policy_networks(config, env.observation_size, env.action_size)
     inference = ppo_nets.make_inference_fn(nets)(params, deterministic=True)
     act = jax.jit(lambda obs: inference(obs, jax.random.PRNGKey(0))[0])

@@ -23,7 +23,6 @@ maps to one or more dotted paths (``beta`` sets both deviation weights); dotted 
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +34,7 @@ from mjx_pathtrack.envs.tasks import ball_on_plate, humanoid_balance
 from mjx_pathtrack.envs.tracking import END_BRAKING, END_STOP, KNOTS_FRAMES, EnvConfig
 from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.robots import registry as robots
+from mjx_pathtrack.config.stored import PARAMS_FILE, params_file
 from mjx_pathtrack.config.options import ConfigError, Options, differences, leaves  # noqa: F401  (re-exported)
 
 
@@ -119,7 +119,7 @@ class TrainConfig(Options):
     paths (deterministic, into ``<run>/data``) when the dataset's has fewer (0: train on the split
     as it is; :mod:`mjx_pathtrack.paths.train_data`), ``executor`` (:data:`EXECUTORS`), ``seed``,
     ``init_from``: a finished run directory whose parameters (policy, value, observation
-    normaliser; its ``params.pkl``) the run starts from instead of random ones (fine-tuning: same
+    normaliser; its ``params.msgpack``) the run starts from instead of random ones (fine-tuning: same
     observation, action and network sizes; the optimiser and the schedules start afresh); then one
     block per concern (module docstring). ``env.deviation_weights`` None: the robot's
     (:data:`DEVIATION_WEIGHTS`)."""
@@ -256,8 +256,8 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
             fail(name, f"must be >= 1, got {value}")
     if c.num_train_paths < 0:
         fail("num_train_paths", f"must be >= 0, got {c.num_train_paths}")
-    if c.init_from is not None and not (Path(c.init_from) / "params.pkl").is_file():
-        fail("init_from", f"{c.init_from}: no params.pkl there (the directory of a finished run)")
+    if c.init_from is not None and params_file(c.init_from) is None:
+        fail("init_from", f"{c.init_from}: no {PARAMS_FILE} there (the directory of a finished run)")
     for entry in c.network.noise_scale:
         try:
             parse_noise_scale(entry)

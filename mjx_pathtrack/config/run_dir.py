@@ -7,7 +7,6 @@ uninterrupted one.
 from __future__ import annotations
 
 import os
-import pickle
 from pathlib import Path as FsPath
 
 from mjx_pathtrack.fileio import atomic_write_bytes
@@ -18,7 +17,7 @@ class RunDirError(ValueError):
 
 
 #: files and folders of a run directory that this package writes
-RUN_FILES = ("config.json", "progress.csv", "checkpoints", "params.pkl", "report.json", "export", "tensorboard",
+RUN_FILES = ("config.json", "progress.csv", "checkpoints", "params.msgpack", "params.pkl", "report.json", "export", "tensorboard",
              "data", "eval")
 
 
@@ -50,9 +49,6 @@ def clear_run_dir(run_dir: FsPath) -> None:
             shutil.rmtree(target)
         elif target.exists():
             target.unlink()
-
-
-CHECKPOINT_FORMAT = 1
 
 
 CHECKPOINT_SUFFIX = ".ckpt"
@@ -92,19 +88,28 @@ def learner_params(learner, devices: int):
     return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
 
 
-def save_checkpoint(checkpoints: FsPath, step: int, state: dict) -> FsPath:
-    """Write ``state`` (host arrays) as the checkpoint of ``step``; keep the newest few."""
+def save_checkpoint(checkpoints: FsPath, step: int, wall_s: float, devices: int, learner, evaluations: dict
+                    ) -> FsPath:
+    """Write the checkpoint of ``step`` as data (:func:`~mjx_pathtrack.config.stored.checkpoint_bytes`:
+    the learner's host arrays and its parameters, the wall time so far [s], the device count, the
+    evaluations); keep the newest few."""
+    from mjx_pathtrack.config.stored import checkpoint_bytes
+
     path = checkpoint_path(checkpoints, step)
-    atomic_write_bytes(path, pickle.dumps({"format": CHECKPOINT_FORMAT, "step": step, **state}))
+    atomic_write_bytes(path, checkpoint_bytes(step, wall_s, devices, learner, evaluations,
+                                              learner_params(learner, devices)))
     old = sorted(f for f in checkpoints.iterdir() if f.name.endswith(CHECKPOINT_SUFFIX))
     for f in old[:-KEEP_CHECKPOINTS]:
         f.unlink()
     return path
 
 
-def load_checkpoint(path: FsPath) -> dict:
-    data = pickle.loads(path.read_bytes())
-    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-        raise RunDirError(f"{path}: not a checkpoint of this package's format {CHECKPOINT_FORMAT} "
-                          f"(a run from before exact resume? train it again with --overwrite)")
-    return data
+def load_checkpoint(path: FsPath, allow_pickle: bool = False) -> dict:
+    """A checkpoint as :func:`~mjx_pathtrack.config.stored.read_checkpoint` reads it (data; an
+    older run's pickle only with ``allow_pickle``); :class:`RunDirError` if it cannot be read."""
+    from mjx_pathtrack.config.stored import StoredDataError, read_checkpoint
+
+    try:
+        return read_checkpoint(path, allow_pickle)
+    except StoredDataError as e:
+        raise RunDirError(str(e)) from e

@@ -1,7 +1,7 @@
 """Evaluate a trained policy (run directory or export) on test paths: the paper 000 §IV report.
 
 ``python evaluate.py RUN_DIR_OR_EXPORT`` is the front end. Steps: :func:`load_policy_source`
-(run dir: ``config.json`` + ``params.pkl`` through the Brax networks of
+(run dir: ``config.json`` + ``params.msgpack`` through the Brax networks of
 :func:`~mjx_pathtrack.deploy.networks.networks`; export dir: :func:`~mjx_pathtrack.deploy.export.load_policy`),
 :func:`build_env` (dataset split or user path file, every path once by default, sub-paths from a
 fixed seed), :func:`run_evaluation` (batched rollout, metrics, TOPP-RA baseline, computation time),
@@ -14,7 +14,6 @@ import csv
 import dataclasses
 import io
 import json
-import pickle
 from pathlib import Path as FsPath
 from typing import Any
 
@@ -32,6 +31,7 @@ from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.envs import registry
 from mjx_pathtrack.envs.tracking import PathTrackingEnv
 from mjx_pathtrack.fileio import atomic_write_bytes, json_safe
+from mjx_pathtrack.config import stored
 from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.deploy.networks import params_observation_size, policy_networks
 
@@ -88,13 +88,16 @@ class UserPaths:
         return UP.report_lines(self.prepared, self.rule)
 
 
-def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | None = None) -> PolicySource:
-    """Load a run directory (``config.json`` + ``params.pkl``) or an export directory
+def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | None = None,
+                       allow_pickle: bool = False) -> PolicySource:
+    """Load a run directory (``config.json`` + ``params.msgpack``) or an export directory
     (``manifest.json`` + ``policy.jaxexport``); :class:`EvaluationError` if unusable.
     ``deterministic=False``: the policy samples its actions from the trained Gaussian, with the
     key of each step, as during training (run directories only: an export holds the mean).
     ``checkpoint``: ``"latest"`` or a step: the policy of that checkpoint of a run directory
-    (``checkpoints/``; a run still training or cut off) instead of its final ``params.pkl``."""
+    (``checkpoints/``; a run still training or cut off) instead of its final parameters.
+    Everything is read as data (:mod:`mjx_pathtrack.config.stored`); an older run's pickles
+    (``params.pkl``, pickled checkpoints) only with ``allow_pickle``."""
     from mjx_pathtrack.deploy import export
 
     root = FsPath(path)
@@ -105,7 +108,7 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
     if (root / export.MANIFEST_FILE).is_file():
         if not deterministic:
             raise EvaluationError(f"{root} is an export, which holds only the deterministic policy; "
-                                  f"sampled actions need the run directory (config.json + params.pkl)")
+                                  f"sampled actions need the run directory (config.json + params.msgpack)")
         try:
             exported = export.load_policy(root)
         except export.ExportError as e:
@@ -128,7 +131,7 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
             raise EvaluationError(f"{root}: {e}") from e
         return PolicySource(lambda obs, key: exported.traced_call(obs), config, float(man["max_dis_between_knots"]),
                             "export", root, rule, exported.observation_size)
-    config_file, params_file = root / "config.json", root / "params.pkl"
+    config_file = root / "config.json"
     if not config_file.is_file():
         raise EvaluationError(f"{root} is neither a run directory (config.json missing) nor an export "
                               f"(manifest.json missing)")
@@ -137,21 +140,21 @@ def load_policy_source(path: str, deterministic: bool = True, checkpoint: str | 
     except (ValueError, TypeError) as e:
         raise EvaluationError(f"corrupt run config {config_file}: {e}") from e
     if checkpoint is not None:
-        params, params_file = _checkpoint_params(root, checkpoint)
+        params, params_file = _checkpoint_params(root, checkpoint, allow_pickle)
         policy, obs_size = _brax_policy(config, params, params_file, deterministic)
         return PolicySource(policy, config, None, "run", root, observation_size=obs_size)
-    if not params_file.is_file():
-        raise EvaluationError(f"{root}: params.pkl missing (training not finished? evaluate a checkpoint with "
-                              f"--checkpoint latest, or finish the run with train.py --resume)")
     try:
-        params = pickle.loads(params_file.read_bytes())
-    except Exception as e:  # unpickling errors come in many types
-        raise EvaluationError(f"corrupt checkpoint {params_file}: {type(e).__name__}: {e}") from e
+        params, params_file = stored.read_params(root, allow_pickle)
+    except FileNotFoundError:
+        raise EvaluationError(f"{root}: {stored.PARAMS_FILE} missing (training not finished? evaluate a checkpoint "
+                              f"with --checkpoint latest, or finish the run with train.py --resume)") from None
+    except stored.StoredDataError as e:
+        raise EvaluationError(str(e)) from e
     policy, obs_size = _brax_policy(config, params, params_file, deterministic)
     return PolicySource(policy, config, None, "run", root, observation_size=obs_size)
 
 
-def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
+def _checkpoint_params(root: FsPath, which: str, allow_pickle: bool = False) -> tuple[tuple, FsPath]:
     """``((normalizer, policy, value), file)`` of checkpoint ``which`` ("latest" or a step) of run ``root``."""
     from mjx_pathtrack.config import run_dir as C
 
@@ -171,10 +174,10 @@ def _checkpoint_params(root: FsPath, which: str) -> tuple[tuple, FsPath]:
             raise EvaluationError(f"{root}: no checkpoint of step {step} (there are: "
                                   f"{C.checkpoint_steps(folder) or 'none'})")
     try:
-        data = C.load_checkpoint(path)
-    except Exception as e:  # unpickling errors come in many types; RunDirError for another format
-        raise EvaluationError(f"corrupt checkpoint {path}: {type(e).__name__}: {e}") from e
-    return C.learner_params(data["learner"], int(data.get("devices", 1))), path
+        data = C.load_checkpoint(path, allow_pickle)
+    except C.RunDirError as e:
+        raise EvaluationError(str(e)) from e
+    return data["params"], path
 
 
 def _brax_policy(config: TrainConfig, params, params_file: FsPath, deterministic: bool = True

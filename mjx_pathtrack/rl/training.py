@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import time
 from pathlib import Path as FsPath
 from typing import Any, NamedTuple
@@ -38,6 +37,7 @@ from mjx_pathtrack.fileio import append_csv_row, atomic_write_bytes, json_safe
 from mjx_pathtrack.paths.train_data import ensure_train_paths
 from mjx_pathtrack.evaluation.rollout import make_evaluator, summarize
 from mjx_pathtrack.config.run import TrainConfig, differences, validate_config
+from mjx_pathtrack.config.stored import LEGACY_PARAMS_FILE, PARAMS_FILE, learner_from_checkpoint, params_bytes
 from mjx_pathtrack.config.run_dir import RunDirError, checkpoint_path, clear_run_dir, latest_checkpoint, learner_params, load_checkpoint, prepare_run_dir, save_checkpoint
 
 _jax_compat.install()  # brax 0.14.2 on JAX >= 0.10 (GPU images); no-op on the pinned JAX
@@ -182,12 +182,13 @@ def _host(tree):
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
 
-def _warm_start(config: TrainConfig, program: _Program, learner, env, joint_names, verbose: bool):
+def _warm_start(config: TrainConfig, program: _Program, learner, env, joint_names, verbose: bool,
+                allow_pickle: bool = False):
     """``learner`` started from ``config.init_from``'s networks (:mod:`mjx_pathtrack.rl.warm_start`);
     joints that run did not drive are fitted to hold still, unless an action prior holds them
     (``--leg-prior hold``: their zero mean head leaves them the prior's hold actions)."""
     layout = warm.PolicyLayout.of_env(env, joint_names)
-    learner, new = warm.warm_start(learner, config.init_from, program.devices, layout)
+    learner, new = warm.warm_start(learner, config.init_from, program.devices, layout, allow_pickle)
     prior = humanoid_balance.action_prior(config)
     held = np.intersect1d(new, prior.joints) if prior is not None else np.zeros(0, np.int64)
     new = np.setdiff1d(new, held)
@@ -207,18 +208,20 @@ def _warm_start(config: TrainConfig, program: _Program, learner, env, joint_name
 
 
 def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, verbose: bool = True,
-          overwrite: bool = False):
+          overwrite: bool = False, allow_pickle: bool = False):
     """Train; returns ``(make_inference_fn, params, report)`` where ``report`` holds the
     evaluation summaries before and after training on the test split (deterministic policy:
     ``before``/``after``; sampled: ``before_sampled``/``after_sampled``). The run directory gets
     ``config.json``, ``progress.csv``, ``checkpoints/`` (the whole learner state after every
-    evaluation interval), ``params.pkl``, ``report.json`` and the jitted policy export
+    evaluation interval), ``params.msgpack``, ``report.json`` and the jitted policy export
     ``export/`` (:mod:`mjx_pathtrack.deploy.export`).
 
     Every option is validated and the run directory checked before anything is written: a
     directory that holds a run is only continued with ``resume`` (the saved config must be
     equal) or replaced with ``overwrite``. ``resume`` continues exactly: the final parameters
-    equal those of an uninterrupted run. Non-finite parameters or losses stop the run with
+    equal those of an uninterrupted run. Parameters and checkpoints are stored as data
+    (:mod:`mjx_pathtrack.config.stored`); ``allow_pickle`` lets ``resume`` and ``init_from`` read
+    an older run's pickles. Non-finite parameters or losses stop the run with
     :class:`TrainingDiverged`; the last good checkpoint stays."""
     run_dir = FsPath(run_dir)
     validate_config(config)
@@ -230,14 +233,14 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
             changed = differences(saved, config)
             raise ValueError(f"--resume: config differs from the saved one in {config_file} ({', '.join(changed)})")
     latest = latest_checkpoint(run_dir / "checkpoints") if resume else None
-    checkpoint = load_checkpoint(latest[0]) if latest else None
+    checkpoint = load_checkpoint(latest[0], allow_pickle) if latest else None
     created = not run_dir.exists()
     try:
         if overwrite and held:
             clear_run_dir(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(config_file, config.to_json().encode())
-        return _train(config, run_dir, checkpoint, verbose)
+        return _train(config, run_dir, checkpoint, verbose, allow_pickle)
     except BaseException:
         if created and latest_checkpoint(run_dir / "checkpoints") is None:
             import shutil
@@ -246,7 +249,7 @@ def train(config: TrainConfig, run_dir: str | os.PathLike, resume: bool = False,
         raise
 
 
-def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbose: bool):
+def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbose: bool, allow_pickle: bool = False):
     root = ensure_train_paths(config.robot, config.dataset, config.num_train_paths, config.dataset_root,
                               run_dir / "data", log=print if verbose else None)
     env, test_env = make_env(config, "train", root), make_env(config, "test", root)
@@ -271,13 +274,14 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
     if checkpoint is None:
         learner, start_step, wall, evals = program.init(config.seed), 0, 0.0, {}
         if config.init_from is not None:
-            learner = _warm_start(config, program, learner, env, joint_names, verbose)
+            learner = _warm_start(config, program, learner, env, joint_names, verbose, allow_pickle)
         truncate_progress(run_dir / "progress.csv", -1)
     else:
         if int(checkpoint["devices"]) != program.devices:
             raise RunDirError(f"{checkpoints}: written by a run on {checkpoint['devices']} devices, this one has "
                               f"{program.devices}; resume on the same number of devices")
-        learner = jax.tree.map(jnp.asarray, checkpoint["learner"])
+        where = str(checkpoint_path(checkpoints, checkpoint["step"]))
+        learner = jax.tree.map(jnp.asarray, learner_from_checkpoint(_host(program.init(config.seed)), checkpoint, where))
         start_step, wall, evals = int(checkpoint["step"]), float(checkpoint["wall_s"]), checkpoint["evaluations"]
         truncate_progress(run_dir / "progress.csv", int(checkpoint["step"]))
         if verbose:
@@ -313,8 +317,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
         metrics = {**{f"training/{k}": v for k, v in summary.items()}, **latest}
         progress(step, metrics)
         evals["latest"] = latest
-        save_checkpoint(checkpoints, step, {"wall_s": progress.wall(), "devices": program.devices,
-                                            "learner": _host(learner), "evaluations": evals})
+        save_checkpoint(checkpoints, step, progress.wall(), program.devices, _host(learner), evals)
     params = learner_params(learner, program.devices)
     report = {"before": _unprefix(evals["before"], "eval"), "after": _unprefix(latest, "eval"),
               "before_sampled": _unprefix(evals["before"], "eval_sampled"),
@@ -327,7 +330,7 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
 
 
 def write_results(run_dir: FsPath, make_policy, params, env, config: TrainConfig, joint_names, report: dict) -> None:
-    """``params.pkl``, ``export/`` and ``report.json`` of a finished run, written side by side
+    """``params.msgpack``, ``export/`` and ``report.json`` of a finished run, written side by side
     first and then moved into place (a kill leaves the previous set or the new one, each file
     whole; the export directory is swapped as a whole)."""
     import shutil
@@ -335,7 +338,7 @@ def write_results(run_dir: FsPath, make_policy, params, env, config: TrainConfig
     staging = run_dir / ".results.tmp"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
-    atomic_write_bytes(staging / "params.pkl", pickle.dumps(params))
+    atomic_write_bytes(staging / PARAMS_FILE, params_bytes(params))
     export_policy(staging / "export", make_policy, params, env, config.robot, joint_names, config.to_json())
     atomic_write_bytes(staging / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     old_export = run_dir / ".export.old"
@@ -343,7 +346,9 @@ def write_results(run_dir: FsPath, make_policy, params, env, config: TrainConfig
     if (run_dir / "export").exists():
         os.replace(run_dir / "export", old_export)
     os.replace(staging / "export", run_dir / "export")
-    os.replace(staging / "params.pkl", run_dir / "params.pkl")
+    os.replace(staging / PARAMS_FILE, run_dir / PARAMS_FILE)
+    if (run_dir / LEGACY_PARAMS_FILE).exists():   # (an older run's pickle, replaced by the data above)
+        (run_dir / LEGACY_PARAMS_FILE).unlink()
     os.replace(staging / "report.json", run_dir / "report.json")
     shutil.rmtree(old_export, ignore_errors=True)
     staging.rmdir()

@@ -6,7 +6,7 @@
 
 Reuses the project's Brax PPO machinery (:func:`mjx_pathtrack.deploy.networks.networks`,
 :class:`~mjx_pathtrack.rl.training.Progress`, :func:`~mjx_pathtrack.envs.wrappers.wrap_for_training`).
-A run directory gets ``config.json``, ``progress.csv``, ``tensorboard/``, ``params.pkl`` and
+A run directory gets ``config.json``, ``progress.csv``, ``tensorboard/``, ``params.msgpack`` and
 ``report.json`` (trained, random and optimal policy evaluated on the same episodes).
 """
 
@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import pickle
 import time
 from pathlib import Path
 from typing import Any
@@ -24,9 +23,9 @@ from mjx_pathtrack.fileio import atomic_write_bytes  # first: the package sets t
 from mjx_pathtrack.envs.tasks import velocity_max as V
 from mjx_pathtrack.config.run import EvalConfig, NetworkConfig, PPOConfig
 from mjx_pathtrack.config.options import Options, add_flags, from_flags
+from mjx_pathtrack.config.stored import PARAMS_FILE, params_bytes
 
 import jax
-import numpy as np
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +112,7 @@ def train(config: VelocityTrainConfig, run_dir: str | Path, verbose: bool = True
                                jax.random.PRNGKey(config.seed + 1)))
     if verbose:
         print(json.dumps(report, indent=2), flush=True)
-    atomic_write_bytes(run_dir / "params.pkl", pickle.dumps(jax.tree.map(np.asarray, params)))
+    atomic_write_bytes(run_dir / PARAMS_FILE, params_bytes(params))
     atomic_write_bytes(run_dir / "report.json", (json.dumps(json_safe(report), indent=2) + "\n").encode())
     return make_inference_fn, params, report
 

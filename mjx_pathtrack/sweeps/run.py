@@ -20,7 +20,7 @@ A sweep file (YAML) holds::
     out: runs/sweeps/my_sweep       # optional default output directory
 
 Each point gets a run directory ``OUT/<field=value_...>`` (``config.json``, ``progress.csv``,
-``params.pkl``, ``export/`` and, written last, ``sweep_metrics.json``); ``OUT/summary.csv`` has one
+``params.msgpack``, ``export/`` and, written last, ``sweep_metrics.json``); ``OUT/summary.csv`` has one
 row per finished point: the swept values, the run directory, the training time and the
 evaluation metrics (:func:`evaluate_group`). Re-running the same command skips finished points
 (a point whose ``sweep_metrics.json`` exists) and continues an interrupted sequential point from
@@ -42,7 +42,6 @@ import csv
 import dataclasses
 import io
 import json
-import pickle
 import sys
 import time
 from pathlib import Path as FsPath
@@ -52,6 +51,7 @@ import numpy as np
 
 from mjx_pathtrack.fileio import append_csv_row, atomic_write, atomic_write_bytes
 from mjx_pathtrack.config.run import TrainConfig
+from mjx_pathtrack.config.stored import PARAMS_FILE, params_bytes
 from mjx_pathtrack.fileio import json_safe
 from mjx_pathtrack.sweeps.spec import Point, SweepError, SweepSpec, _label, check_datasets, grid_points, load_spec, steps_mjx_physics
 
@@ -315,7 +315,7 @@ def _train_vectorized(points: Sequence[Point], out: FsPath, verbose: bool):
     test_env = make_env(configs[0], "test")
     joint_names = robots.load_robot(configs[0].robot, dt=configs[0].env.dt).joint_names
     for d, c, p in zip(dirs, configs, params):
-        atomic_write_bytes(d / "params.pkl", pickle.dumps(p))
+        atomic_write_bytes(d / PARAMS_FILE, params_bytes(p))
         export_policy(d / "export", make_policy, p, test_env, c.robot, joint_names, c.to_json())
     if verbose:
         print(f"  exported {len(points)} policies in {time.monotonic() - t0:.1f} s", flush=True)

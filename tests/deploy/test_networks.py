@@ -50,7 +50,7 @@ def test_training_evaluation_and_sweeps_act_alike_with_the_leg_prior():
 
     trained = act(ppo.build(cfg, env).make_policy)
     swept = act(sweeps._make_policy(cfg, env))
-    evaluated, read_size = report._brax_policy(cfg, params, Path("params.pkl"))
+    evaluated, read_size = report._brax_policy(cfg, params, Path("params.msgpack"))
     assert read_size == obs_size
     np.testing.assert_array_equal(swept, trained)
     np.testing.assert_array_equal(np.asarray(evaluated(obs, key)), trained)

@@ -5,7 +5,6 @@ import dataclasses
 import importlib.util
 import json
 import os
-import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +25,7 @@ from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.paths.datasets import DatasetError
 from mjx_pathtrack.envs.tracking import EnvConfig, PathTrackingEnv
 from mjx_pathtrack.config.run import TrainConfig
+from mjx_pathtrack.config.stored import PARAMS_FILE, params_bytes
 from mjx_pathtrack.deploy.networks import networks as ppo_networks
 from mjx_pathtrack.rl.training import make_env
 
@@ -185,7 +185,7 @@ def test_limit_ratios_flag_a_violation():
 
 
 def _write_run(run: Path, layers=(16,), **options):
-    """A run directory with untrained (random) parameters: config.json + params.pkl (``options``:
+    """A run directory with untrained (random) parameters: config.json + params.msgpack (``options``:
     flat options of the run's config)."""
     from brax.training.acme import running_statistics, specs
 
@@ -198,7 +198,7 @@ def _write_run(run: Path, layers=(16,), **options):
     params = (norm, nets.policy_network.init(key), nets.value_network.init(key))
     run.mkdir(parents=True, exist_ok=True)
     (run / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    (run / "params.pkl").write_bytes(pickle.dumps(jax.tree.map(np.asarray, params)))
+    (run / PARAMS_FILE).write_bytes(params_bytes(jax.tree.map(np.asarray, params)))
     return cfg, env, nets, params
 
 
@@ -318,10 +318,10 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     only_config = tmp_path / "only_config"
     only_config.mkdir()
     (only_config / "config.json").write_text((run / "config.json").read_text())
-    with pytest.raises(R.EvaluationError, match="params.pkl missing"):
+    with pytest.raises(R.EvaluationError, match="params.msgpack missing"):
         R.load_policy_source(str(only_config))
-    (only_config / "params.pkl").write_bytes(b"\x80\x04not a pickle")
-    with pytest.raises(R.EvaluationError, match="corrupt checkpoint"):
+    (only_config / "params.msgpack").write_bytes(b"\xc1 not msgpack")
+    with pytest.raises(R.EvaluationError, match="corrupt file .*params.msgpack"):
         R.load_policy_source(str(only_config))
     other = tmp_path / "other"
     _write_run(other, layers=(4,))

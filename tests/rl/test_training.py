@@ -4,7 +4,6 @@ import csv
 import dataclasses
 import json
 import os
-import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +18,7 @@ import jax.numpy as jnp
 from mjx_pathtrack.deploy.export import load_policy
 from mjx_pathtrack.config import run_dir
 from mjx_pathtrack.config.run_dir import latest_checkpoint
+from mjx_pathtrack.config.stored import PARAMS_FILE, params_bytes, read_params
 from mjx_pathtrack.config.run import TrainConfig
 from mjx_pathtrack.fileio import json_safe
 from mjx_pathtrack.rl.training import make_env, train
@@ -71,7 +71,7 @@ def test_run_directory_has_config_progress_checkpoint_and_report(tiny_run):
     assert latest is not None and latest[1] > 0
     policy = load_policy(out / "export")
     assert policy.manifest["robot"] == "iiwa" and policy(np.zeros(94, np.float32)).shape == (7,)
-    saved = pickle.loads((out / "params.pkl").read_bytes())
+    saved = read_params(out)[0]
     np.testing.assert_array_equal(jax.tree.leaves(saved)[0], np.asarray(jax.tree.leaves(params)[0]))
 
 
@@ -118,7 +118,7 @@ def _first_kernel(net):
 def _trimmed_source(out, where, cut_inputs, manifest, cut_action=None):
     """A run directory ``where`` holding the tiny run ``out``'s parameters without the observation
     entries ``cut_inputs`` (and the action ``cut_action``), with the export ``manifest``."""
-    norm, policy, value = jax.tree.map(np.asarray, pickle.loads((out / "params.pkl").read_bytes()))
+    norm, policy, value = jax.tree.map(np.asarray, read_params(out)[0])
 
     def trim(x, axis=0):
         return np.delete(np.asarray(x), cut_inputs, axis=axis)
@@ -133,7 +133,7 @@ def _trimmed_source(out, where, cut_inputs, manifest, cut_action=None):
         std = policy["params"]["std_logparam"]
         std["log_value"] = np.delete(std["log_value"], cut_action)
     (where / "export").mkdir(parents=True)
-    (where / "params.pkl").write_bytes(pickle.dumps((norm, policy, value)))
+    (where / PARAMS_FILE).write_bytes(params_bytes((norm, policy, value)))
     (where / "export" / "manifest.json").write_text(json.dumps(manifest))
     return where
 
@@ -154,7 +154,7 @@ def test_init_from_a_run_with_fewer_observations_adds_them_with_zero_weights(tin
     block = layout[-1]
     cut = np.arange(block["start"], block["start"] + block["size"])  # 86..93; the value net's 3 extra after
     source = _trimmed_source(out, tmp_path / "fewer", cut, {**manifest, "observation_layout": layout[:-1]})
-    norm, policy, value = pickle.loads((out / "params.pkl").read_bytes())
+    norm, policy, value = read_params(out)[0]
     env = make_env(config, "train")
     learner = training._program(config, env).init(config.seed)
     target = warm.PolicyLayout.of_env(env, manifest["joint_names"])
@@ -206,7 +206,7 @@ def test_init_from_a_run_with_fewer_joints_fits_the_new_one_to_hold_still(tiny_r
     learner = program.init(config.seed)
     warm_learner, new = warm.warm_start(learner, source, 1, warm.PolicyLayout.of_env(env, names))
     assert new.tolist() == [drop]
-    full = pickle.loads((out / "params.pkl").read_bytes())
+    full = read_params(out)[0]
     np.testing.assert_array_equal(np.asarray(warm_learner.params.policy["params"]["std_logparam"]["log_value"])[drop],
                                   np.asarray(learner.params.policy["params"]["std_logparam"]["log_value"])[drop])
 
@@ -243,7 +243,7 @@ def test_init_from_refuses_other_networks_and_missing_runs(tiny_run, tmp_path):
     with pytest.raises(RunDirError, match="policy.*shape .*this run's"):
         train(config.replace(init_from=str(out), policy_layers=(8,)), tmp_path / "other", verbose=False)
     assert not (tmp_path / "other").exists()  # nothing left behind
-    with pytest.raises(ConfigError, match="--init-from: .*no params.pkl"):
+    with pytest.raises(ConfigError, match="--init-from: .*no params.msgpack"):
         train(config.replace(init_from=str(tmp_path / "nowhere")), tmp_path / "missing", verbose=False)
     assert not (tmp_path / "missing").exists()
 
@@ -257,11 +257,11 @@ def test_train_cli_on_two_forced_host_devices(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert "CpuDevice(id=1)" in result.stdout  # both devices visible to Brax's pmap
     assert "evaluation after training" in result.stdout
-    assert (tmp_path / "run" / "params.pkl").is_file()
+    assert (tmp_path / "run" / "params.msgpack").is_file()
     assert any(cache.iterdir())  # compiled programs went to the persistent cache
     # the last lines list what the run holds and how to use it
     run = tmp_path / "run"
-    assert f"run directory {run}: config.json, progress.csv, tensorboard/, checkpoints/, params.pkl, report.json, " \
+    assert f"run directory {run}: config.json, progress.csv, tensorboard/, checkpoints/, params.msgpack, report.json, " \
            f"export/" in result.stdout
     assert "export/: manifest.json, policy.jaxexport, policy.onnx" in result.stdout
     assert f"python evaluate.py {run}/export" in result.stdout.splitlines()[-4]
@@ -435,7 +435,7 @@ def test_critic_features_show_the_budget_the_path_left_and_braking():
 
 def test_evaluation_loads_a_checkpoint_of_a_run(tiny_run):
     """``evaluate.py RUN --checkpoint latest|STEP``: a checkpoint's policy (here the last one, whose
-    parameters the finished run wrote to params.pkl: the same actions); bad requests are refused
+    parameters the finished run wrote to params.msgpack: the same actions); bad requests are refused
     by name."""
     from mjx_pathtrack.evaluation.report import EvaluationError, load_policy_source
 
@@ -600,7 +600,7 @@ def test_resume_after_sigkill_ends_with_the_parameters_of_an_uninterrupted_run(t
     killed = subprocess.run([sys.executable, "-c", child, *tiny_args(run), "--num-evals", "4"], cwd=REPO,
                             env=env, capture_output=True, text=True, timeout=900)
     assert killed.returncode == -9, killed.stderr[-2000:]
-    assert latest_checkpoint(run / "checkpoints")[1] == steps[1] and not (run / "params.pkl").exists()
+    assert latest_checkpoint(run / "checkpoints")[1] == steps[1] and not (run / "params.msgpack").exists()
     assert max(int(r["step"]) for r in csv.DictReader(open(run / "progress.csv"))) == steps[2]  # log ahead
     _, resumed, _ = train(TrainConfig().replace(**EXACT), run, resume=True, verbose=False)
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(resumed)):
@@ -636,10 +636,11 @@ def test_overwrite_replaces_the_run_and_a_new_directory_is_removed_when_nothing_
 
     run = tmp_path / "run"
     run.mkdir()
-    (run / "params.pkl").write_bytes(b"old")
+    (run / "params.msgpack").write_bytes(b"old")
+    (run / "params.pkl").write_bytes(b"older")
     (run / "notes.txt").write_text("mine")
     run_dir.clear_run_dir(run)
-    assert not (run / "params.pkl").exists() and (run / "notes.txt").read_text() == "mine"  # only our files
+    assert not (run / "params.msgpack").exists() and not (run / "params.pkl").exists() and (run / "notes.txt").read_text() == "mine"  # only our files
 
     def broken(*args, **kwargs):
         raise RuntimeError("boom")
@@ -675,8 +676,8 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
         train(TrainConfig().replace(**EXACT), run, verbose=False)
     path, step = latest_checkpoint(run / "checkpoints")
     state = run_dir.load_checkpoint(path)
-    assert state["step"] == step and all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state["learner"].params))
-    assert not (run / "params.pkl").exists() and not (run / "export").exists()
+    assert state["step"] == step and all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state["params"]))
+    assert not (run / "params.msgpack").exists() and not (run / "export").exists()
 
 
 @pytest.mark.parametrize("argv,message", [

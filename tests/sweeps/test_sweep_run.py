@@ -3,7 +3,6 @@ train.py front end, bad sweep files, and the analysis notebook executed on the r
 
 import csv
 import json
-import pickle
 import shutil
 import sys
 from pathlib import Path
@@ -17,6 +16,7 @@ from mjx_pathtrack.paths import datasets
 from mjx_pathtrack.sweeps import run as sweep
 from mjx_pathtrack.sweeps import spec as sweep_spec
 from mjx_pathtrack.config.run import TrainConfig
+from mjx_pathtrack.config.stored import read_params
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = dict(num_envs=8, num_timesteps=640, unroll_length=5, batch_size=8, num_minibatches=2,
@@ -79,7 +79,7 @@ def test_each_point_has_a_run_directory(tiny_sweep):
         assert r["point"] == point.name == run.name
         assert TrainConfig.from_json((run / "config.json").read_text()) == point.config
         assert point.config.env.reward.distance == float(r["alpha"]) and point.config.env.reward.max_deviation == float(r["beta"])
-        params = pickle.loads((run / "params.pkl").read_bytes())
+        params = read_params(run)[0]
         assert len(params) == 3  # Brax layout: normalizer, policy, value
         assert (run / "export" / "manifest.json").is_file()
         assert len(read_rows(run / "progress.csv")) >= 1
@@ -101,7 +101,7 @@ def test_resume_skips_finished_points_and_redoes_only_the_missing_one(tiny_sweep
 
     def fake_train(point, run_dir, verbose):  # stands in for Brax training: reuse the trained params
         calls.append(point.name)
-        return pickle.loads((run_dir / "params.pkl").read_bytes()), record["train_seconds"]
+        return read_params(run_dir)[0], record["train_seconds"]
 
     def fake_evaluate(points, params, evaluation, spec):
         assert [p.name for p in points] == [missing.name]
