@@ -73,10 +73,15 @@ def parse_args(argv=None):
     p.add_argument("--max-falls", type=float, default=0.02, help="ball on plate: falls on every other row")
     p.add_argument("--ball-physics", default="arm", choices=("arm", "plate", "rolling"),
                    help="ball on plate: the scene of every row (default the full-arm MJX scene)")
+    p.add_argument("--terminate-deviation", type=float, default=None, metavar="RAD",
+                   help="end episodes at this deviation instead of the training config's (compare policies "
+                        "trained with other limits at one bar)")
     p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "generalisation"))
     args = p.parse_args(argv)
     if args.count < 1:
         p.error(f"--count must be >= 1, got {args.count}")
+    if args.terminate_deviation is not None and not args.terminate_deviation > 0:
+        p.error(f"--terminate-deviation must be a number > 0, got {args.terminate_deviation}")
     for s in args.sources:
         if not Path(s).is_dir():
             p.error(f"no run or export directory at {s}")
@@ -211,6 +216,8 @@ def main(argv=None) -> int:
         source = R.load_policy_source(src, deterministic=not args.stochastic)
         if source.config.task == "ball_on_plate":
             source = dataclasses.replace(source, config=source.config.replace(ball_physics=args.ball_physics))
+        if args.terminate_deviation is not None:
+            source = dataclasses.replace(source, config=source.config.replace(terminate_deviation=args.terminate_deviation))
         cfg = source.config
         robot = robots.load_robot(cfg.robot, dt=cfg.env.dt)
         name = f"{src} ({'sampled' if args.stochastic else 'deterministic'})"

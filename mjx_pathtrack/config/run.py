@@ -173,7 +173,7 @@ def _upgrade_flat(data: dict[str, Any]) -> dict[str, Any]:
 #: reached by its dotted path (``env.substeps``)
 _ENV_OPTIONS = ("dt", "n_next", "substeps", "knots_frame", "terminate_deviation", "end_tolerance", "end_braking", "end_stop",
                 "end_knot_tolerance", "duration", "observe_deviation",
-                "observe_speed_limits")
+                "observe_speed_limits", "train_terminate_deviation")
 
 #: flat option name -> the dotted paths it sets (the command line's ``--name``, sweep grid keys,
 #: the keys of a flat ``config.json``)
@@ -241,6 +241,13 @@ def validate_config(config: TrainConfig, devices: int = 1) -> None:
                  "balance_reward"):
         for path in TrainConfig.paths(name):  # (beta: both deviation weights)
             _check_nonnegative(name, get(path), fail)
+    train_bar = get("train_terminate_deviation")
+    if train_bar is not None:
+        if not (np.isfinite(train_bar) and train_bar > 0):
+            fail("train_terminate_deviation", f"must be a finite number > 0, got {train_bar}")
+        if get("terminate_deviation") is not None and train_bar > get("terminate_deviation"):
+            fail("train_terminate_deviation", f"{train_bar} is above --terminate-deviation "
+                                              f"{get('terminate_deviation')} (the bar the policy is judged at)")
     for name, lo, hi in (("discounting", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clipping_epsilon", 0.0, 1.0)):
         value = get(name)
         if not (np.isfinite(value) and lo < value <= hi):

@@ -63,7 +63,11 @@ FACTORIES: dict[str, Callable] = {"tracking": make_tracking, "ball_on_plate": _b
 
 def make(config, split: str = "train", root=None) -> PathTrackingEnv:
     """The environment of ``config.task`` over the dataset split ``split`` (``train`` or ``test``;
-    dataset under ``root``, default ``config.dataset_root``)."""
+    dataset under ``root``, default ``config.dataset_root``); the training split's episodes end
+    at ``env.train_terminate_deviation`` where it is set."""
     if config.task not in FACTORIES:
         raise ValueError(f"unknown task {config.task!r}; known: {', '.join(FACTORIES)}")
+    tube = config.env.train_terminate_deviation
+    if split == "train" and tube is not None:   # training episodes end in a tighter tube than the bar
+        config = config.replace(terminate_deviation=tube)
     return FACTORIES[config.task](config, split, root)

@@ -70,6 +70,11 @@ class EnvConfig:
     from [0, 2] to [-1, 1]: above 0 the robot is faster than that stretch allows and must slow
     down before it. Whatever the curve's shape, the joint that binds on a stretch shows up here
     (tracking task only).
+    train_terminate_deviation [rad] (None: ``terminate_deviation``): the deviation at which the
+    episodes of the *training* environments end (:func:`mjx_pathtrack.envs.registry.make`,
+    split ``"train"``); evaluation, the training's evaluations and reports keep
+    ``terminate_deviation``, the bar. A tighter tube in training than the bar leaves the policy a
+    margin on paths unlike its training paths (docs/results.md "A tighter tube in training").
     """
 
     dt: float = 0.1
@@ -96,6 +101,7 @@ class EnvConfig:
     end_knot_tolerance: float = 0.05
     observe_deviation: bool = False
     observe_speed_limits: bool = False
+    train_terminate_deviation: float | None = None
 
     def __post_init__(self):
         if self.end_braking not in END_BRAKING:

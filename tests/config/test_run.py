@@ -85,3 +85,21 @@ def test_the_velocity_task_shares_the_blocks_and_loads_its_old_flat_config():
     assert (loaded.ppo.num_timesteps, loaded.network.policy_layers, loaded.eval.episodes) == (5000, (64, 64), 32)
     with pytest.raises(ValueError, match="discounting"):  # set by horizon_s, not an option here
         VelocityTrainConfig.from_flat({"discounting": 0.5})
+
+
+def test_a_tighter_training_tube_ends_only_the_training_episodes_earlier():
+    """``--train-terminate-deviation``: the training split's environments end episodes at that
+    deviation, the evaluation split (and so the training's evaluations and every report) at the
+    bar ``--terminate-deviation``; a tube wider than the bar, or not a number > 0, is refused."""
+    from mjx_pathtrack.config.run import ConfigError, validate_config
+    from mjx_pathtrack.envs import registry
+
+    config = TrainConfig().replace(train_terminate_deviation=0.15)
+    validate_config(config)
+    assert registry.make(config, "train").config.terminate_deviation == 0.15
+    assert registry.make(config, "test").config.terminate_deviation == 0.25
+    assert registry.make(TrainConfig(), "train").config.terminate_deviation == 0.25   # unset: the bar
+    for bad, message in ((0.3, "0.3 is above --terminate-deviation 0.25"), (0.0, "must be a finite number > 0"),
+                         (float("nan"), "must be a finite number > 0")):
+        with pytest.raises(ConfigError, match=f"--train-terminate-deviation: {message}"):
+            validate_config(TrainConfig().replace(train_terminate_deviation=bad))
