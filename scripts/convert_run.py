@@ -46,7 +46,7 @@ def convert(run: Path) -> list[str]:
             continue
         old = stored.read_checkpoint(path, allow_pickle=True)
         atomic_write_bytes(path, stored.checkpoint_bytes(old["step"], old["wall_s"], int(old["devices"]), old["learner"],
-                                                         old["evaluations"], old["params"]))
+                                                         old["evaluations"]))
         done.append(f"checkpoints/{path.name} rewritten as data")
     return done
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path as FsPath
 
+from mjx_pathtrack.config.stored import learner_params  # noqa: F401  (re-exported: training's parameters)
 from mjx_pathtrack.fileio import atomic_write_bytes
 
 
@@ -77,27 +78,15 @@ def latest_checkpoint(checkpoints: FsPath) -> tuple[FsPath, int] | None:
     return (checkpoint_path(checkpoints, steps[-1]), steps[-1]) if steps else None
 
 
-def learner_params(learner, devices: int):
-    """``(normalizer, policy, value)`` host arrays of a learner (a checkpoint's or a live one;
-    pmapped over ``devices`` > 1: device 0's copy, all devices hold the same)."""
-    import jax
-    import numpy as np
-
-    params = jax.tree.map(np.asarray, jax.device_get((learner.normalizer_params, learner.params.policy,
-                                                      learner.params.value)))
-    return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
-
-
 def save_checkpoint(checkpoints: FsPath, step: int, wall_s: float, devices: int, learner, evaluations: dict
                     ) -> FsPath:
     """Write the checkpoint of ``step`` as data (:func:`~mjx_pathtrack.config.stored.checkpoint_bytes`:
-    the learner's host arrays and its parameters, the wall time so far [s], the device count, the
-    evaluations); keep the newest few."""
+    the learner's host arrays, the wall time so far [s], the device count, the evaluations); keep
+    the newest few."""
     from mjx_pathtrack.config.stored import checkpoint_bytes
 
     path = checkpoint_path(checkpoints, step)
-    atomic_write_bytes(path, checkpoint_bytes(step, wall_s, devices, learner, evaluations,
-                                              learner_params(learner, devices)))
+    atomic_write_bytes(path, checkpoint_bytes(step, wall_s, devices, learner, evaluations))
     old = sorted(f for f in checkpoints.iterdir() if f.name.endswith(CHECKPOINT_SUFFIX))
     for f in old[:-KEEP_CHECKPOINTS]:
         f.unlink()

@@ -176,26 +176,37 @@ def read_params(run_dir: str | FsPath, allow_pickle: bool = False) -> tuple[tupl
     return params_from_state(state, str(path)), path
 
 
-def _leaves(tree) -> tuple[list[str], list[np.ndarray]]:
+def learner_params(learner, devices: int):
+    """``(normalizer, policy, value)`` host arrays of a learner (a checkpoint's or a live one;
+    pmapped over ``devices`` > 1: device 0's copy, all devices hold the same)."""
+    import jax
+
+    params = jax.tree.map(np.asarray, jax.device_get((learner.normalizer_params, learner.params.policy,
+                                                      learner.params.value)))
+    return jax.tree.map(lambda x: x[0], params) if devices > 1 else params
+
+
+def _leaves(tree) -> tuple[list[str], list]:
+    """The names (key paths) and leaves of ``tree``."""
     import jax
 
     flat = jax.tree_util.tree_flatten_with_path(tree)[0]
-    return [jax.tree_util.keystr(path) for path, _ in flat], [np.asarray(leaf) for _, leaf in flat]
+    return [jax.tree_util.keystr(path) for path, _ in flat], [leaf for _, leaf in flat]
 
 
-def checkpoint_bytes(step: int, wall_s: float, devices: int, learner, evaluations: dict, params) -> bytes:
+def checkpoint_bytes(step: int, wall_s: float, devices: int, learner, evaluations: dict) -> bytes:
     """The bytes of a checkpoint: every array of the learner (optimiser, networks, normaliser,
     environment states, keys) with its name in the learner's tree, the parameters ``(normalizer,
-    policy, value)`` once more by name (for evaluating a checkpoint without building a learner),
-    the step, the wall time so far [s], the device count and the evaluations (nested dicts of
-    floats)."""
+    policy, value)`` once more by name (:func:`learner_params`: for evaluating a checkpoint without
+    building a learner), the step, the wall time so far [s], the device count and the evaluations
+    (nested dicts of floats)."""
     from flax import serialization
 
     names, arrays = _leaves(learner)
     return serialization.msgpack_serialize({
         "format": CHECKPOINT_FORMAT, "step": int(step), "wall_s": float(wall_s), "devices": int(devices),
-        "learner": {"names": names, "arrays": arrays}, "params": params_to_state(params),
-        "evaluations": evaluations})
+        "learner": {"names": names, "arrays": [np.asarray(a) for a in arrays]},
+        "params": params_to_state(learner_params(learner, devices)), "evaluations": evaluations})
 
 
 def read_checkpoint(path: FsPath, allow_pickle: bool = False) -> dict:
@@ -206,14 +217,7 @@ def read_checkpoint(path: FsPath, allow_pickle: bool = False) -> dict:
         data = _unpickle(path, allow_pickle)
         if not isinstance(data, dict) or data.get("format") != 1:
             raise StoredDataError(f"{path}: not a checkpoint of this package")
-        import jax
-
-        devices = int(data.get("devices", 1))
-        learner = data["learner"]
-        params = (learner.normalizer_params, learner.params.policy, learner.params.value)
-        if devices > 1:
-            params = jax.tree.map(lambda x: x[0], params)
-        return {**data, "params": jax.tree.map(np.asarray, params)}
+        return {**data, "params": learner_params(data["learner"], int(data.get("devices", 1)))}
     data = _restore(path)
     if data.get("format") != CHECKPOINT_FORMAT:
         raise StoredDataError(f"{path}: format {data.get('format')!r}, this package reads {CHECKPOINT_FORMAT!r}")
@@ -224,8 +228,9 @@ def read_checkpoint(path: FsPath, allow_pickle: bool = False) -> dict:
 
 
 def learner_from_checkpoint(template, checkpoint: dict, where: str):
-    """``template`` (a freshly built learner of the same config and device count) with the arrays
-    of a checkpoint (:func:`read_checkpoint`), every array's name, shape and dtype checked."""
+    """A learner of ``template``'s structure (a learner of the same config and device count, or
+    its ``jax.eval_shape``: only names, shapes and dtypes are read) with the arrays of a
+    checkpoint (:func:`read_checkpoint`), every array's name, shape and dtype checked."""
     import jax
 
     stored = checkpoint["learner"]

@@ -281,7 +281,8 @@ def _train(config: TrainConfig, run_dir: FsPath, checkpoint: dict | None, verbos
             raise RunDirError(f"{checkpoints}: written by a run on {checkpoint['devices']} devices, this one has "
                               f"{program.devices}; resume on the same number of devices")
         where = str(checkpoint_path(checkpoints, checkpoint["step"]))
-        learner = jax.tree.map(jnp.asarray, learner_from_checkpoint(_host(program.init(config.seed)), checkpoint, where))
+        template = jax.eval_shape(lambda: program.init(config.seed))   # the structure only: nothing runs
+        learner = jax.tree.map(jnp.asarray, learner_from_checkpoint(template, checkpoint, where))
         start_step, wall, evals = int(checkpoint["step"]), float(checkpoint["wall_s"]), checkpoint["evaluations"]
         truncate_progress(run_dir / "progress.csv", int(checkpoint["step"]))
         if verbose:

@@ -32,7 +32,7 @@ import numpy as np
 from mjx_pathtrack.core import limits as L
 from mjx_pathtrack.envs import action_prior
 from mjx_pathtrack.config.run_dir import RunDirError
-from mjx_pathtrack.config.stored import StoredDataError, params_file, read_params
+from mjx_pathtrack.config.stored import StoredDataError, read_params
 
 #: observation blocks with one entry per actuated joint (:func:`~mjx_pathtrack.deploy.export.observation_layout`)
 JOINT_BLOCKS = ("position", "velocity", "acceleration")
@@ -166,16 +166,16 @@ def transfer(own, loaded, inputs: np.ndarray | None, actions: np.ndarray | None,
     return jax.tree.unflatten(own_tree, out)
 
 
-def read_source(source: str | Path, allow_pickle: bool = False) -> tuple[tuple, PolicyLayout | None]:
-    """``((normalizer, policy, value), layout)`` of the finished run in directory ``source``
+def read_source(source: str | Path, allow_pickle: bool = False) -> tuple[tuple, PolicyLayout | None, Path]:
+    """``((normalizer, policy, value), layout, file)`` of the finished run in directory ``source``
     (its parameters as data; an older run's pickle only with ``allow_pickle``)."""
     try:
-        loaded, _ = read_params(source, allow_pickle)
+        loaded, file = read_params(source, allow_pickle)
     except (OSError, StoredDataError) as e:
         raise RunDirError(f"--init-from: {e}") from e
     manifest = Path(source) / "export" / "manifest.json"
     layout = PolicyLayout.from_manifest(json.loads(manifest.read_text())) if manifest.is_file() else None
-    return loaded, layout
+    return loaded, layout, file
 
 
 def warm_start(learner, source: str | Path, devices: int, layout: PolicyLayout | None = None,
@@ -186,7 +186,7 @@ def warm_start(learner, source: str | Path, devices: int, layout: PolicyLayout |
     equal), replicated over ``devices``; the optimiser state, environments and keys stay
     ``learner``'s. ``new_joints``: indices of this run's joints the source did not drive (their
     mean action is 0: see :func:`fit_new_joints`)."""
-    loaded, theirs = read_source(source, allow_pickle)
+    loaded, theirs, file = read_source(source, allow_pickle)
     own = (learner.normalizer_params, learner.params.policy, learner.params.value)
     if devices > 1:
         own = jax.tree.map(lambda x: x[0], own)
@@ -194,7 +194,7 @@ def warm_start(learner, source: str | Path, devices: int, layout: PolicyLayout |
     if theirs is not None and layout is not None and theirs != layout:
         inputs, actions = input_index(theirs, layout), action_index(theirs, layout)
     normalizer, policy, value = transfer(own, loaded, inputs, actions, theirs.size if theirs else None,
-                                         str(params_file(source)))
+                                         str(file))
     if devices > 1:
         normalizer, policy, value = jax.tree.map(lambda x: jnp.broadcast_to(x, (devices,) + x.shape),
                                                  (normalizer, policy, value))

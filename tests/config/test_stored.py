@@ -177,4 +177,3 @@ def test_convert_run_rewrites_an_old_pickled_run_as_data(tmp_path):
     again = subprocess.run([sys.executable, "scripts/convert_run.py", str(run)], cwd=REPO, capture_output=True,
                            text=True, timeout=300)
     assert again.returncode == 0 and "nothing to convert" in again.stdout
-    assert json.loads((run / "config.json").read_text())["robot"] == "iiwa"
