@@ -6,6 +6,8 @@
     python evaluate.py RUN --paths my_paths.csv         # user paths (datasets import format)
     python evaluate.py RUN --episodes 50 --seed 1 --full-paths --out eval/
     python evaluate.py runs/armar4_target_point --floating-base --terminate-deviation inf  # ARMAR-4 on the floor: falls
+    python evaluate.py policies/iiwa --full-paths --video                 # + RUN/eval/episode0.mp4 (offscreen)
+    python evaluate.py policies/iiwa --video run.gif --video-episodes 0 3 # run_episode0.gif, run_episode3.gif
 
 Writes metrics.json, episodes.csv and PNG plots of one episode to --out (default RUN/eval, with
 --checkpoint RUN/eval_latest or RUN/eval_STEP).
@@ -78,8 +80,26 @@ def parse_args(argv=None):
     parser.add_argument("--topp3-cache", default=None, metavar="FILE",
                         help="JSON cache of TOPP3 durations (default ~/.cache/mjx_pathtrack/topp3.json; 'none': off)")
     parser.add_argument("--workers", type=int, default=2, help="processes for the TOPP3 baseline")
+    parser.add_argument("--online-baselines", action="store_true",
+                        help="also run the online peers (Ruckig towards a look-ahead point, every 1/240 s) on the "
+                             "same episodes of the first batch, knowing what the policy knows (state + next N "
+                             "knots); path tracking only (mjx_pathtrack.evaluation.online_peers)")
     parser.add_argument("--out", default=None, help="output directory (default SOURCE/eval)")
+    parser.add_argument("--video", nargs="?", const="", default=None, metavar="FILE",
+                        help="also render episodes offscreen (MuJoCo renderer, MUJOCO_GL=egl unless set): the robot, "
+                             "the reference tool path, the executed trace, the ball; FILE .mp4 / .gif / .png (last "
+                             "frame); default OUT/episodeB.mp4")
+    parser.add_argument("--video-episodes", type=int, nargs="+", default=None, metavar="B",
+                        help="episodes to render (of the first batch; default --plot-episode)")
+    parser.add_argument("--video-size", default="640x480", metavar="WxH", help="frame size in pixels")
+    parser.add_argument("--video-fps", type=int, default=30, help="frames per second of motion")
     return parser.parse_args(argv)
+
+
+def video_size(text: str) -> tuple[int, int] | None:
+    """``"WxH"`` -> (W, H), or None if malformed."""
+    parts = text.lower().split("x")
+    return (int(parts[0]), int(parts[1])) if len(parts) == 2 and all(p.isdigit() for p in parts) else None
 
 
 def option_problem(args) -> str | None:
@@ -105,8 +125,48 @@ def option_problem(args) -> str | None:
          f"--end-tolerance must be a finite number >= 0, got {args.end_tolerance}"),
         (args.checkpoint is not None and args.checkpoint != "latest" and not args.checkpoint.isdigit(),
          f"--checkpoint must be 'latest' or a step (a whole number), got {args.checkpoint!r}"),
+        (bool(args.video) and Path(args.video or "x.mp4").suffix.lower() not in (".mp4", ".gif", ".png"),
+         f"--video {args.video}: the file name must end in .mp4, .gif or .png"),
+        (args.video is None and (args.video_episodes is not None), "--video-episodes applies to --video only"),
+        (args.video_episodes is not None and min(args.video_episodes) < 0,
+         f"--video-episodes must be >= 0, got {args.video_episodes}"),
+        (video_size(args.video_size) is None or not all(16 <= x <= 4096 for x in video_size(args.video_size)),
+         f"--video-size must be WxH with 16..4096 pixels per side, got {args.video_size!r}"),
+        (not 1 <= args.video_fps <= 240, f"--video-fps must be 1..240, got {args.video_fps}"),
     )
     return next((message for failed, message in checks if failed), None)
+
+
+def online_peer_lines(env, first, table: dict, robot, measure) -> list[dict]:
+    """Print the policy and the online peers on the episodes of the first batch; returns their rows."""
+    import numpy as np
+
+    from mjx_pathtrack.evaluation import online_peers as P
+    from mjx_pathtrack.evaluation import rollout as E
+
+    n = len(first.s_start)
+    own = {k: v[:n] for k, v in table.items()}
+    rows = []
+    print(f"\nOnline peers on the same {n} episodes (state + next {env.config.n_next} knots; "
+          "mjx_pathtrack.evaluation.online_peers)")
+    for name, t, compute in [("policy", own, None)] + [
+            (f"{peer.name} ({peer.lookahead:g} rad, {peer.speed_factor:g})", *P.peer_table(env, peer, first, robot, measure))
+            for peer in (P.RuckigLookahead(),)]:
+        agg = E.aggregate(t)
+        ratio = t.get("ratio_to_toppra", np.full(n, np.nan))
+        row = {"controller": name, "end_reached": agg["end_reached_rate"], "stop_time_s": agg["stop_time_s_mean"],
+               "ratio_to_toppra": float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan"),
+               "joint_dev_mean": float(np.mean(t["joint_dev_mean"])),
+               "contour_cm": float(np.mean(t["cart_contour_dev_cm_mean"])) if "cart_contour_dev_cm_mean" in t else None,
+               "limit_audit": agg["limit_audit"],
+               "compute_per_decision_s": None if compute is None else float(np.nanmean(compute))}
+        rows.append(row)
+        contour = "" if row["contour_cm"] is None else f"   contour {row['contour_cm']:.2f} cm"
+        cost = "" if compute is None else f"   {1e3 * row['compute_per_decision_s']:.2f} ms per decision"
+        print(f"  {name:<40} end {100 * row['end_reached']:5.1f} %   stop {row['stop_time_s']:6.3f} s   "
+              f"x TOPP-RA {row['ratio_to_toppra']:.3f}   joint dev {row['joint_dev_mean']:.3f} rad{contour}   "
+              f"limits {'OK' if row['limit_audit']['ok'] else 'VIOLATED'}{cost}")
+    return rows
 
 
 def main(argv=None) -> int:
@@ -118,6 +178,10 @@ def main(argv=None) -> int:
     if problem:
         print(f"evaluate.py: error: {problem}", file=sys.stderr)
         return 2
+    if args.video is not None:
+        import os
+
+        os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen OpenGL; read when mujoco is first imported
     from mjx_pathtrack.evaluation import report as R
     from mjx_pathtrack.paths.datasets import DatasetError
 
@@ -129,6 +193,9 @@ def main(argv=None) -> int:
                                                             "end_knot_tolerance", "end_tolerance", "ball_physics")}
         overrides = {name: value for name, value in overrides.items() if value is not None}
         source = dataclasses.replace(source, config=source.config.replace(**overrides))
+        if args.online_baselines and (source.config.task != "tracking" or args.floating_base):
+            raise R.EvaluationError(f"--online-baselines compares path-tracking policies, not task "
+                                    f"{source.config.task}{' on a floating base' if args.floating_base else ''}")
         user = None
         if args.paths:
             user = R.load_user_paths(args.paths, source.config.robot,
@@ -163,9 +230,35 @@ def main(argv=None) -> int:
     title = (f"{source.kind} {source.path} on {label} ({'full paths' if whole else f'sub-paths, seed {args.seed}'}"
              f"{physics}{', sampled actions' if args.stochastic else ''})")
     print(R.format_report(summary, title, source.config.robot))
+    if args.online_baselines:
+        summary["online_peers"] = online_peer_lines(env, first, table, robot, None if user is None else user.curves)
     default = "eval" if args.checkpoint is None else f"eval_{args.checkpoint}"
     out = Path(args.out) if args.out else Path(args.source) / default
     files = R.write_outputs(out, summary, table, meta, env, first, robot, episode)
+    if args.video is not None:
+        from mjx_pathtrack.evaluation import video
+
+        width, height = video_size(args.video_size)
+        settings = video.VideoSettings(width=width, height=height, fps=args.video_fps)
+        chosen = args.video_episodes or [episode]
+        if max(chosen) >= len(first.s_start):
+            print(f"evaluate.py: error: --video-episodes {max(chosen)}: the first batch has {len(first.s_start)} "
+                  "episodes", file=sys.stderr)
+            return 2
+        for b in chosen:
+            if not args.video:
+                file = out / f"episode{b}.mp4"
+            elif len(chosen) == 1:
+                file = Path(args.video)
+            else:
+                file = Path(args.video).with_name(f"{Path(args.video).stem}_episode{b}{Path(args.video).suffix}")
+            label_b = f"{Path(args.source).name}: {label}, episode {b}"
+            try:
+                files.append(video.write_episode_video(file, env, first, robot, b, settings,
+                                                       None if user is None else user.curves, label_b))
+            except video.RenderError as e:
+                print(f"evaluate.py: error: {e}", file=sys.stderr)
+                return 2
     print("\nwrote " + ", ".join(str(f) for f in files))
     return 0 if summary["limit_audit"]["ok"] else 1
 

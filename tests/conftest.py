@@ -10,6 +10,8 @@ import mjx_pathtrack
 mjx_pathtrack.prepare_xla()
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# Offscreen OpenGL for the rendering tests (tests/evaluation/test_video.py): read when mujoco is imported.
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 # One persistent XLA compilation cache per test process (also inherited by the subprocesses a
 # test starts): the training tests compile the same PPO program several times. Set before JAX is

@@ -53,6 +53,11 @@ class KinematicExecutor:
         q, _ = setpoints(p, v, a0, a1, dt, self.substeps)
         return exec_state, q, {}
 
+    def scene(self, exec_state) -> dict[str, Array]:
+        """What a rendering needs beyond the joint positions: nothing (see :meth:`MjxExecutor.scene`)."""
+        del exec_state
+        return {}
+
 
 class MjxExecutor:
     """Servo-controlled MJX physics of ``robot`` over each decision step.
@@ -89,6 +94,12 @@ class MjxExecutor:
         start = data.qpos[r.qpos_adr]
         data, measured = jax.lax.scan(physics, data, jnp.arange(self.substeps))
         return data, jnp.concatenate([start[None], measured]), {"qvel": data.qvel[r.dof_adr]}
+
+    def scene(self, data) -> dict[str, Array]:
+        """What a rendering needs beyond the controlled joints' positions, after a step:
+        ``{"qpos": [nq]}``, the whole scene's pose in ``robot.mj_model`` (a floating base, joints
+        the policy does not drive). Executors without a scene state return ``{}``."""
+        return {"qpos": data.qpos}
 
 
 def _warn_if_slow_on_cpu() -> None:

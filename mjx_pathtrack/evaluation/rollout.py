@@ -115,7 +115,8 @@ def run_episodes(env: PathTrackingEnv, policy: Policy, state, keys: Array, recor
             jnp.where(now_done, m.get("task_failed", zeros), acc.task_failed))
 
     def step_record(before, after, live):
-        return _step_record(env, before.pipeline_state, after.pipeline_state, before.obs, live)
+        record = _step_record(env, before.pipeline_state, after.pipeline_state, before.obs, live)
+        return {**record, "progress": after.metrics["progress"], "deviation": after.metrics["d_max"]}
 
     init = EpisodeAccumulator(zeros, nan, nan, zeros, zeros, zeros, zeros, zeros, zeros)
     final, records = episodes.run_episodes(jax.vmap(env.step), policy, state, keys, accumulate, init,
@@ -133,8 +134,10 @@ def _step_record(env: PathTrackingEnv, before, after, obs: Array, live: Array) -
     dt = env.config.dt
     _, q, _ = jax.vmap(lambda e, p, v, a0, a1: env.executor.execute(e, p, v, a0, a1, dt))(
         before.executor, before.p, before.v, before.a, after.a)
+    stateful = hasattr(env.executor, "scene") and jax.tree.leaves(after.executor)  # the kinematic one keeps None
+    scene = jax.vmap(env.executor.scene)(after.executor) if stateful else {}
     return {"executed": q, "p": after.p, "v": after.v, "a": after.a, "obs": obs, "live": live,
-            "limit_ratio": limit_ratios(env.limits, before.p, before.v, before.a, after.a, dt)}
+            "limit_ratio": limit_ratios(env.limits, before.p, before.v, before.a, after.a, dt), "scene": scene}
 
 
 def limit_ratios(lim: L.JointLimits, p: Array, v: Array, a0: Array, a1: Array, dt: float) -> Array:
@@ -221,7 +224,11 @@ class Rollout(NamedTuple):
     limit_ratio ``[T, B, 4, n]`` in-step maxima of |p|, |v|, |a|, |jerk| / limits; p0 ``[B, n]``
     start state (at rest); paths: the episodes' reference :class:`~mjx_pathtrack.core.spline.Path`
     batch ``[B]``; s_start ``[B]`` [rad]; path_index ``[B]``; done ``[B]`` bool; metrics: the
-    :class:`EpisodeMetrics` of the same run.
+    :class:`EpisodeMetrics` of the same run; progress, deviation ``[T, B]``: the path progress
+    (fraction) and the step's largest weighted deviation [rad] after each step; scene: what the
+    executor keeps of the scene after each step (``executor.scene``: ``"qpos"`` ``[T, B, nq]`` of
+    an MJX robot, ``"ball"`` ``[T, B, 3]`` in the plate frame [m]; empty for the kinematic one),
+    for rendering (:mod:`mjx_pathtrack.evaluation.video`).
     """
 
     executed: np.ndarray
@@ -237,6 +244,9 @@ class Rollout(NamedTuple):
     path_index: np.ndarray
     done: np.ndarray
     metrics: EpisodeMetrics
+    progress: np.ndarray
+    deviation: np.ndarray
+    scene: dict
 
 
 def rollout(env: PathTrackingEnv, policy: Policy, rng: Array, path_indices, max_steps: int | None = None) -> Rollout:
@@ -257,7 +267,7 @@ def rollout(env: PathTrackingEnv, policy: Policy, rng: Array, path_indices, max_
 
     metrics, done, rec, p0, s_start, paths = jax.tree.map(np.asarray, run(rng, indices))
     return Rollout(rec["executed"], rec["p"], rec["v"], rec["a"], rec["obs"], rec["live"], rec["limit_ratio"], p0,
-                   paths, s_start, np.asarray(indices), done, metrics)
+                   paths, s_start, np.asarray(indices), done, metrics, rec["progress"], rec["deviation"], rec["scene"])
 
 
 def executed_polyline(ro: Rollout, b: int) -> np.ndarray:

@@ -214,7 +214,9 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
     result = subprocess.run([sys.executable, "evaluate.py", str(run), "--episodes", "3", "--timing-decisions", "5",
-                             "--terminate-deviation", "0.3", "--end-tolerance", "0.05", "--out", str(out)],
+                             "--terminate-deviation", "0.3", "--end-tolerance", "0.05", "--out", str(out),
+                             "--video", str(out / "clip.gif"), "--video-episodes", "0", "2", "--video-size", "64x48",
+                             "--video-fps", "5", "--online-baselines"],
                             cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     for heading in ("Table I", "Table VI", "Table IX", "Limit audit", "OK (<= 1)"):
@@ -229,6 +231,19 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     assert len(rows) == 4 and "toppra_duration_s" in rows[0] and "cart_pos_dev_cm_mean" in rows[0]
     for name in ("kinematics", "joint_path", "cartesian"):
         assert (out / f"episode0_{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the online peer ran on the same episodes and is reported beside the policy
+    peers = metrics["online_peers"]
+    assert [r["controller"].split(" (")[0] for r in peers] == ["policy", "Ruckig look-ahead"]
+    assert "Online peers on the same 3 episodes" in result.stdout
+    assert peers[0]["end_reached"] == metrics["end_reached_rate"]
+    assert all(np.isfinite(r["joint_dev_mean"]) and "ok" in r["limit_audit"] for r in peers)
+    assert peers[1]["compute_per_decision_s"] > 0
+    from PIL import Image
+
+    table = np.genfromtxt(out / "episodes.csv", delimiter=",", names=True)
+    for b in (0, 2):   # one video per chosen episode, one frame per 0.2 s of its motion, start included
+        with Image.open(out / f"clip_episode{b}.gif") as clip:
+            assert clip.size == (64, 48) and clip.n_frames == int(table["steps"][b] * 0.1 * 5 + 1e-9) + 1
 
 
 def test_evaluate_cli_fails_on_a_missing_directory_before_importing_jax(tmp_path):
@@ -358,6 +373,10 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     (["--terminate-deviation", "nan"], "--terminate-deviation must be a number > 0 (inf: no limit), got nan"),
     (["--keep-knots"], "--keep-knots applies to --paths only"),
     (["--checkpoint", "last"], "--checkpoint must be 'latest' or a step"),
+    (["--video", "clip.avi"], "--video clip.avi: the file name must end in .mp4, .gif or .png"),
+    (["--video-episodes", "1"], "--video-episodes applies to --video only"),
+    (["--video", "--video-size", "640"], "--video-size must be WxH with 16..4096 pixels per side, got '640'"),
+    (["--video", "--video-fps", "0"], "--video-fps must be 1..240, got 0"),
 ])
 def test_evaluate_option_errors_are_one_line_before_anything_loads(tmp_path, options, message):
     """Every option error of evaluate.py: one line naming the option, exit status 2, before JAX

@@ -130,3 +130,8 @@ class BallExecutor:
         ball = data.sensordata[self.sensor_adr:self.sensor_adr + 3]
         new = state._replace(data=data, ball_prev=state.ball, ball=ball, q=measured[-1])
         return new, jnp.concatenate([start[None], measured]), {"ball": ball}
+
+    def scene(self, state: BallState) -> dict[str, Array]:
+        """What a rendering needs beyond the arm's joints: ``{"ball": [3]}``, the ball centre in the
+        plate frame [m] (every ball executor keeps it, whatever its physics)."""
+        return {"ball": state.ball}

@@ -107,6 +107,15 @@ class HeldJointsExecutor:
                                               self._full(a0, zero), self._full(a1, zero), dt)
         return data, q[:, self.active], sensors
 
+    def scene(self, data) -> dict[str, Array]:
+        """The whole robot's ``qpos`` (:meth:`MjxExecutor.scene`)."""
+        return self.inner.scene(data)
+
+    @property
+    def robot(self):
+        """The simulated robot (all of its joints)."""
+        return self.inner.robot
+
 
 #: how far [rad] :func:`standing_home` keeps a joint inside its position limits (half the range
 #: where the range is narrower)
