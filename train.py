@@ -155,6 +155,7 @@ def run_summary(run: Path) -> str:
              f"  python evaluate.py {run}/export                      # the deployed policy on the test paths",
              f"  python evaluate.py {run} --stochastic                # the sampled policy beside it",
              f"  python benchmarks/generalisation.py {run}/export     # on path families it never saw",
+             f"  python evaluate.py {run}/export --full-paths --episodes 1 --video  # watch it: {run}/export/eval/episode0.mp4",
              f"  tensorboard --logdir {run}/tensorboard"]
     return "\n".join(lines)
 

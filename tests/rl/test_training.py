@@ -264,7 +264,8 @@ def test_train_cli_on_two_forced_host_devices(tmp_path):
     assert f"run directory {run}: config.json, progress.csv, tensorboard/, checkpoints/, params.msgpack, report.json, " \
            f"export/" in result.stdout
     assert "export/: manifest.json, policy.jaxexport, policy.onnx" in result.stdout
-    assert f"python evaluate.py {run}/export" in result.stdout.splitlines()[-4]
+    assert f"python evaluate.py {run}/export" in result.stdout.splitlines()[-5]
+    assert f"python evaluate.py {run}/export --full-paths --episodes 1 --video" in result.stdout.splitlines()[-2]
 
 
 def test_compilation_cache_is_opt_in_and_a_bad_directory_is_a_clear_error(tmp_path):
