@@ -185,12 +185,16 @@ def sampled_ratios(lim, p: np.ndarray, v: np.ndarray, a: np.ndarray, h: float) -
     return np.stack([pos, vel, acc, jerk])
 
 
-def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarray, p0: np.ndarray
-             ) -> tuple[E.Rollout, np.ndarray]:
+def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarray, p0: np.ndarray,
+             change: tuple[int, np.ndarray] | None = None) -> tuple[E.Rollout, np.ndarray]:
     """Run ``peer`` on the episodes ``paths [B]`` (a stacked reference batch, e.g. a policy
     rollout's ``ro.paths``) from ``s_start [B]`` [rad], starting at rest at ``p0 [B, n]``.
-    Returns a :class:`~mjx_pathtrack.evaluation.rollout.Rollout` (for ``rollout.episode_table``)
-    and ``compute_s [T, B]``: the library's wall time per decision step (NaN after the end)."""
+    ``change = (k, knots [B, m, n])``: before decision step ``k`` the reference ahead of each
+    robot's place is replaced by a spline through its ``knots``
+    (:func:`~mjx_pathtrack.core.spline.replace_ahead`, as ``OnlineTracker.update_path``); the peer
+    sees the new window from then on. Returns a :class:`~mjx_pathtrack.evaluation.rollout.Rollout`
+    (for ``rollout.episode_table``; its references are the final ones, the part behind the change
+    unchanged) and ``compute_s [T, B]``: the library's wall time per decision step (NaN after the end)."""
     import jax
 
     cfg = env.config
@@ -211,12 +215,16 @@ def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarr
     counts = {k: np.zeros(B) for k in ("steps", "success", "terminated", "progress", "dev_sum", "dev_max")}
     done = np.zeros(B, bool)
     weights = None if cfg.deviation_weights is None else np.asarray(cfg.deviation_weights, np.float64)
+    final = []
     for b in range(B):
         path = jax.tree.map(lambda x: x[b], paths)
         view = ReferenceView(path, float(s_start[b]), cfg.n_next)
         p, v, a = np.asarray(p0[b], np.float64), np.zeros(n), np.zeros(n)
         s = view.s_start
         for k in range(steps):
+            if change is not None and k == change[0]:
+                path = S.replace_ahead(path, np.float32(s), np.asarray(change[1][b], np.float32))
+                view = ReferenceView(path, float(s_start[b]), cfg.n_next)
             ps, vs, as_, spent, fine = peer.decide(view, s, p, v, a, limits, dt, substeps)
             ratios[k, b] = sampled_ratios(lim, np.concatenate([p[None], fine[0]]), np.concatenate([v[None], fine[1]]),
                                           np.concatenate([a[None], fine[2]]), dt / (substeps * AUDIT_SAMPLES))
@@ -224,7 +232,7 @@ def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarr
             rec["p"][k, b], rec["v"][k, b], rec["a"][k, b] = ps[-1], vs[-1], as_[-1]
             live[k, b], compute[k, b] = True, spent
             # the peer's place on the path after each cycle, and its deviation there (weighted like
-            # the environment's); the executed arc length for the table's equal-arc deviations
+            # the environment's)
             s_end, _ = view.window_end(s)
             places = []
             for q in ps:
@@ -255,11 +263,13 @@ def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarr
                 break
         else:
             done[b] = True   # the time budget ran out
+        final.append(path)
     m = E.EpisodeMetrics(np.zeros(B), counts["steps"], metrics["end_time"], metrics["stop_time"],
                          counts["dev_sum"] / np.maximum(counts["steps"], 1), counts["dev_max"], counts["success"],
                          counts["terminated"], counts["progress"], np.zeros(B))
     ro = E.Rollout(executed, rec["p"], rec["v"], rec["a"], np.zeros((steps, B, 0)), live, ratios,
-                   np.asarray(p0, np.float64), paths, np.asarray(s_start), np.asarray(path_index), done, m,
+                   np.asarray(p0, np.float64), paths if change is None else S.stack_paths(final),
+                   np.asarray(s_start), np.asarray(path_index), done, m,
                    progress, deviation, {})
     return ro, compute
 

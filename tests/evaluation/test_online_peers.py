@@ -157,3 +157,32 @@ def test_bad_settings_are_refused():
         P.RuckigLookahead(lookahead=0.0)
     with pytest.raises(ValueError, match="speed_factor in"):
         P.RuckigLookahead(speed_factor=1.5)
+
+
+def test_a_path_change_in_mid_motion_is_followed_to_the_new_end(iiwa):
+    """Joint 1 runs along a line; before decision 6 the path ahead turns to joint 3: the motion
+    up to then is the unchanged run's, the peer then follows the new window to the new end knot,
+    within every limit at every sampled instant."""
+    knots = np.zeros((8, 7))
+    knots[:, 0] = np.linspace(0.0, 1.4, 8)
+    knots[:, 1] = 0.5
+    env = _env(iiwa, [S.make_path(knots, max_knots=16)], duration=8.0)   # (room for the new knots)
+    new = np.zeros((1, 4, 7))
+    new[0, :, 0] = 0.9
+    new[0, :, 1] = 0.5
+    new[0, :, 2] = np.linspace(0.2, 0.8, 4)
+    peer = P.RuckigLookahead(lookahead=0.3, speed_factor=0.5)
+    plain, _ = _run(env, peer, 1)
+    paths = jax.tree.map(lambda x: x[:1], env.paths)
+    changed, _ = P.run_peer(env, peer, paths, np.zeros(1), np.arange(1), np.asarray(plain.p0), change=(6, new))
+    np.testing.assert_array_equal(changed.executed[:6, 0], plain.executed[:6, 0])
+    assert not np.allclose(changed.executed[6, 0], plain.executed[6, 0])
+    assert changed.metrics.success[0] == 1
+    live = changed.live[:, 0]
+    np.testing.assert_allclose(changed.p[live, 0][-1], new[0, -1], atol=1e-3)
+    table = E.episode_table(env, changed, iiwa)
+    for q in ("pos", "vel", "acc", "jerk"):
+        assert table[f"max_{q}_ratio"][0] <= 1.0 + E.AUDIT_TOLERANCE, q
+    # the final reference is the changed one: it ends at the new end knot
+    np.testing.assert_allclose(np.asarray(changed.paths.knots)[0, int(changed.paths.n_knots[0]) - 1], new[0, -1],
+                               atol=1e-6)
