@@ -130,6 +130,9 @@ def option_problem(args) -> str | None:
         (args.video is None and (args.video_episodes is not None), "--video-episodes applies to --video only"),
         (args.video_episodes is not None and min(args.video_episodes) < 0,
          f"--video-episodes must be >= 0, got {args.video_episodes}"),
+        (args.video_episodes is not None and max(args.video_episodes) >= min(args.batch, args.episodes or args.batch),
+         f"--video-episodes {args.video_episodes}: only episodes of the first batch can be rendered "
+         f"(0..{min(args.batch, args.episodes or args.batch) - 1})"),
         (video_size(args.video_size) is None or not all(16 <= x <= 4096 for x in video_size(args.video_size)),
          f"--video-size must be WxH with 16..4096 pixels per side, got {args.video_size!r}"),
         (not 1 <= args.video_fps <= 240, f"--video-fps must be 1..240, got {args.video_fps}"),

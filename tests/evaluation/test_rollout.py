@@ -375,6 +375,7 @@ def test_bad_inputs_give_clear_errors(tiny_run, tmp_path, capsys):
     (["--checkpoint", "last"], "--checkpoint must be 'latest' or a step"),
     (["--video", "clip.avi"], "--video clip.avi: the file name must end in .mp4, .gif or .png"),
     (["--video-episodes", "1"], "--video-episodes applies to --video only"),
+    (["--video", "--episodes", "3", "--video-episodes", "3"], "only episodes of the first batch can be rendered (0..2)"),
     (["--video", "--video-size", "640"], "--video-size must be WxH with 16..4096 pixels per side, got '640'"),
     (["--video", "--video-fps", "0"], "--video-fps must be 1..240, got 0"),
 ])
