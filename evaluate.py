@@ -141,34 +141,24 @@ def option_problem(args) -> str | None:
 
 
 def online_peer_lines(env, first, table: dict, robot, measure) -> list[dict]:
-    """Print the policy and the online peers on the episodes of the first batch; returns their rows."""
-    import numpy as np
-
+    """Print the policy and the online peers on the episodes of the first batch; returns their rows
+    (:func:`mjx_pathtrack.evaluation.online_peers.summary_row`)."""
     from mjx_pathtrack.evaluation import online_peers as P
-    from mjx_pathtrack.evaluation import rollout as E
 
     n = len(first.s_start)
-    own = {k: v[:n] for k, v in table.items()}
-    rows = []
+    rows = [P.summary_row("policy", {k: v[:n] for k, v in table.items()})]
+    for peer in (P.RuckigLookahead(),):
+        rows.append(P.summary_row(f"{peer.name} ({peer.lookahead:g} rad, {peer.speed_factor:g})",
+                                  *P.peer_table(env, peer, first, robot, measure)))
     print(f"\nOnline peers on the same {n} episodes (state + next {env.config.n_next} knots; "
           "mjx_pathtrack.evaluation.online_peers)")
-    for name, t, compute in [("policy", own, None)] + [
-            (f"{peer.name} ({peer.lookahead:g} rad, {peer.speed_factor:g})", *P.peer_table(env, peer, first, robot, measure))
-            for peer in (P.RuckigLookahead(),)]:
-        agg = E.aggregate(t)
-        ratio = t.get("ratio_to_toppra", np.full(n, np.nan))
-        row = {"controller": name, "end_reached": agg["end_reached_rate"], "stop_time_s": agg["stop_time_s_mean"],
-               "ratio_to_toppra": float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan"),
-               "joint_dev_mean": float(np.mean(t["joint_dev_mean"])),
-               "contour_cm": float(np.mean(t["cart_contour_dev_cm_mean"])) if "cart_contour_dev_cm_mean" in t else None,
-               "limit_audit": agg["limit_audit"],
-               "compute_per_decision_s": None if compute is None else float(np.nanmean(compute))}
-        rows.append(row)
+    for row in rows:
         contour = "" if row["contour_cm"] is None else f"   contour {row['contour_cm']:.2f} cm"
-        cost = "" if compute is None else f"   {1e3 * row['compute_per_decision_s']:.2f} ms per decision"
-        print(f"  {name:<40} end {100 * row['end_reached']:5.1f} %   stop {row['stop_time_s']:6.3f} s   "
+        cost = "" if row["compute_mean_ms"] != row["compute_mean_ms"] else \
+            f"   {row['compute_mean_ms']:.2f} ms per decision"
+        print(f"  {row['controller']:<40} end {100 * row['end_reached']:5.1f} %   stop {row['stop_time_s']:6.3f} s   "
               f"x TOPP-RA {row['ratio_to_toppra']:.3f}   joint dev {row['joint_dev_mean']:.3f} rad{contour}   "
-              f"limits {'OK' if row['limit_audit']['ok'] else 'VIOLATED'}{cost}")
+              f"limits {'OK' if row['audit_ok'] else 'VIOLATED'}{cost}")
     return rows
 
 

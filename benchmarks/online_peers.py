@@ -56,47 +56,20 @@ def parse_args(argv=None):
     return args
 
 
-def controller_row(name: str, table: dict, compute_s) -> dict:
-    """One controller's figures on one row's episodes."""
-    import numpy as np
-
-    from mjx_pathtrack.evaluation import rollout as E
-
-    summary = E.aggregate(table)
-    ratio = table["ratio_to_toppra"]
-    audit = summary["limit_audit"]
-    worst = max(("pos", "vel", "acc", "jerk"), key=lambda q: audit[q])
-    compute = np.asarray(compute_s, np.float64)
-    return {"controller": name, "episodes": int(len(ratio)), "end_reached": summary["end_reached_rate"],
-            "stop_time_s": summary["stop_time_s_mean"],
-            "ratio_to_toppra": float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan"),
-            "joint_dev_mean": float(np.mean(table["joint_dev_mean"])),
-            "joint_dev_max": float(np.mean(table["joint_dev_max"])),
-            "joint_dev_final": float(np.mean(table["joint_dev_final"])),
-            "contour_cm": float(np.mean(table["cart_contour_dev_cm_mean"])),
-            "audit": audit, "audit_worst": worst, "audit_ok": audit["ok"],
-            "compute_mean_ms": 1e3 * float(np.nanmean(compute)), "compute_max_ms": 1e3 * float(np.nanmax(compute)),
-            "terminations": summary["termination"]}
-
-
 def compare(env, source, robot, peers, measure=None, timing: bool = True) -> list[dict]:
     """The policy and each peer on every episode of ``env`` (whole paths, one batch)."""
-    import numpy as np
-
     from mjx_pathtrack.evaluation import online_peers as P
     from mjx_pathtrack.evaluation import report as R
 
     n = env.n_paths
     summary, table, first = R.run_evaluation(env, source.policy, robot, None, 0, n, 200 if timing else 0, True,
                                              measure=measure)
-    policy_compute = [summary["computation_time"]["mean_s"], summary["computation_time"]["max_s"]] if timing else \
-        [float("nan")]
-    rows = [controller_row("policy (deterministic export)", table, policy_compute)]
+    policy_compute = [summary["computation_time"]["mean_s"], summary["computation_time"]["max_s"]] if timing else None
+    rows = [P.summary_row("policy (deterministic export)", table, policy_compute)]
     for peer in peers:
         t = time.time()
         peer_table, compute = P.peer_table(env, peer, first, robot, measure)
-        rows.append(controller_row(f"{peer.name} ({peer.lookahead:g} rad, {peer.speed_factor:g})", peer_table,
-                                   compute[np.isfinite(compute)]))
+        rows.append(P.summary_row(f"{peer.name} ({peer.lookahead:g} rad, {peer.speed_factor:g})", peer_table, compute))
         print(f"    {peer.name}: {n} episodes in {time.time() - t:.0f} s", flush=True)
     return rows
 

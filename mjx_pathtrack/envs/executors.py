@@ -53,11 +53,6 @@ class KinematicExecutor:
         q, _ = setpoints(p, v, a0, a1, dt, self.substeps)
         return exec_state, q, {}
 
-    def scene(self, exec_state) -> dict[str, Array]:
-        """What a rendering needs beyond the joint positions: nothing (see :meth:`MjxExecutor.scene`)."""
-        del exec_state
-        return {}
-
 
 class MjxExecutor:
     """Servo-controlled MJX physics of ``robot`` over each decision step.
@@ -98,7 +93,8 @@ class MjxExecutor:
     def scene(self, data) -> dict[str, Array]:
         """What a rendering needs beyond the controlled joints' positions, after a step:
         ``{"qpos": [nq]}``, the whole scene's pose in ``robot.mj_model`` (a floating base, joints
-        the policy does not drive). Executors without a scene state return ``{}``."""
+        the policy does not drive). Executors without a state (the kinematic one) have nothing to add
+        and no ``scene``."""
         return {"qpos": data.qpos}
 
 

@@ -78,6 +78,15 @@ def baseline_durations(paths: S.Path, s_start: np.ndarray, vel: np.ndarray, acc:
     return out
 
 
+def toppra_columns(env, paths: S.Path, s_start: np.ndarray, stop_time_s: np.ndarray) -> dict[str, np.ndarray]:
+    """The per-episode TOPP-RA columns of an evaluation table: ``toppra_duration_s [B]`` of the
+    episodes ``paths [B]`` from ``s_start [B]`` under the environment's path-joint limits, and
+    ``ratio_to_toppra [B]``, the episodes' ``stop_time_s [B]`` over it."""
+    pj = np.asarray(env.path_joints)
+    durations = baseline_durations(paths, s_start, np.asarray(env.limits.vel)[pj], np.asarray(env.limits.acc)[pj])
+    return {"toppra_duration_s": durations, "ratio_to_toppra": duration_ratio(stop_time_s, durations)}
+
+
 def duration_ratio(policy_duration: np.ndarray, baseline: np.ndarray) -> np.ndarray:
     """Per-episode policy/TOPP-RA duration ratio (NaN where either is unknown or 0)."""
     policy_duration, baseline = np.asarray(policy_duration, float), np.asarray(baseline, float)

@@ -41,6 +41,7 @@ import time as _time
 
 import numpy as np
 
+from mjx_pathtrack.core import reward as R
 from mjx_pathtrack.core import spline as S
 from mjx_pathtrack.core.spline_fit import _horner, _locate
 from mjx_pathtrack.evaluation import rollout as E
@@ -214,7 +215,7 @@ def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarr
     metrics = {k: np.full(B, np.nan) for k in ("end_time", "stop_time")}
     counts = {k: np.zeros(B) for k in ("steps", "success", "terminated", "progress", "dev_sum", "dev_max")}
     done = np.zeros(B, bool)
-    weights = None if cfg.deviation_weights is None else np.asarray(cfg.deviation_weights, np.float64)
+    weights = cfg.deviation_weights
     final = []
     for b in range(B):
         path = jax.tree.map(lambda x: x[b], paths)
@@ -238,10 +239,7 @@ def run_peer(env, peer, paths: S.Path, s_start: np.ndarray, path_index: np.ndarr
             for q in ps:
                 s = view.project(q, s, s_end)
                 places.append(s)
-            diff = view.point(np.asarray(places)) - ps
-            d = np.linalg.norm(diff if weights is None else diff * weights, axis=1)
-            if weights is not None:
-                d *= np.sqrt(len(weights) / np.sum(weights ** 2))
+            d = np.asarray(R.weighted_deviation(view.point(np.asarray(places)), ps, weights), np.float64)
             p, v, a = ps[-1], vs[-1], as_[-1]
             progress[k, b] = (s - view.s_start) / max(view.length - view.s_start, 1e-9)
             deviation[k, b] = d.max()
@@ -287,8 +285,31 @@ def peer_table(env, peer, ro: E.Rollout, robot=None, measure: list | None = None
     peer_ro, compute = run_peer(env, peer, ro.paths, ro.s_start, ro.path_index, ro.p0)
     table = E.episode_table(env, peer_ro, robot, measure=measure)
     if toppra:
-        lim, pj = env.limits, np.asarray(env.path_joints)
-        table["toppra_duration_s"] = baseline.baseline_durations(jax.tree.map(np.asarray, ro.paths), ro.s_start,
-                                                                 np.asarray(lim.vel)[pj], np.asarray(lim.acc)[pj])
-        table["ratio_to_toppra"] = baseline.duration_ratio(table["stop_time_s"], table["toppra_duration_s"])
+        table.update(baseline.toppra_columns(env, jax.tree.map(np.asarray, ro.paths), ro.s_start, table["stop_time_s"]))
     return table, compute
+
+
+def summary_row(name: str, table: dict[str, np.ndarray], compute_s=None) -> dict:
+    """One controller's figures on a set of episodes (its :func:`rollout.episode_table`, with the
+    TOPP-RA columns where present): end reached, mean stop time [s], mean ratio to TOPP-RA, joint
+    deviation at equal arc length (mean / max / final, episode means) [rad], Cartesian contour
+    deviation [cm] (with a robot), the limit audit and its worst quantity, the compute per decision
+    ``compute_s`` (any shape, NaN ignored; None: not measured) as mean / max [ms], terminations."""
+    summary = E.aggregate(table)
+    ratio = table.get("ratio_to_toppra", np.full(summary["episodes"], np.nan))
+    audit = summary["limit_audit"]
+    compute = np.full(1, np.nan) if compute_s is None else np.asarray(compute_s, np.float64)
+    finite = compute[np.isfinite(compute)]
+    return {"controller": name, "episodes": summary["episodes"], "end_reached": summary["end_reached_rate"],
+            "stop_time_s": summary["stop_time_s_mean"],
+            "ratio_to_toppra": float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan"),
+            "joint_dev_mean": float(np.mean(table["joint_dev_mean"])),
+            "joint_dev_max": float(np.mean(table["joint_dev_max"])),
+            "joint_dev_final": float(np.mean(table["joint_dev_final"])),
+            "contour_cm": float(np.mean(table["cart_contour_dev_cm_mean"])) if "cart_contour_dev_cm_mean" in table
+            else None,
+            "audit": audit, "audit_worst": max(("pos", "vel", "acc", "jerk"), key=lambda q: audit[q]),
+            "audit_ok": audit["ok"],
+            "compute_mean_ms": 1e3 * float(finite.mean()) if finite.size else float("nan"),
+            "compute_max_ms": 1e3 * float(finite.max()) if finite.size else float("nan"),
+            "terminations": summary["termination"]}

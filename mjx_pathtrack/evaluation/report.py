@@ -336,12 +336,8 @@ def run_evaluation(env: PathTrackingEnv, policy: E.Policy, robot=None, episodes:
         ro = E.rollout(env, policy, jax.random.fold_in(key, i), padded)
         table = {k: v[:len(chunk)] for k, v in E.episode_table(env, ro, robot, measure=measure).items()}
         if topp:
-            pj = np.asarray(env.path_joints)
-            lim = env.limits
             paths = jax.tree.map(lambda x: x[:len(chunk)], ro.paths)
-            table["toppra_duration_s"] = baseline.baseline_durations(paths, ro.s_start[:len(chunk)],
-                                                                     np.asarray(lim.vel)[pj], np.asarray(lim.acc)[pj])
-            table["ratio_to_toppra"] = baseline.duration_ratio(table["stop_time_s"], table["toppra_duration_s"])
+            table.update(baseline.toppra_columns(env, paths, ro.s_start[:len(chunk)], table["stop_time_s"]))
         if topp3:
             pj = np.asarray(env.path_joints)
             lim = env.limits

@@ -134,8 +134,7 @@ def _step_record(env: PathTrackingEnv, before, after, obs: Array, live: Array) -
     dt = env.config.dt
     _, q, _ = jax.vmap(lambda e, p, v, a0, a1: env.executor.execute(e, p, v, a0, a1, dt))(
         before.executor, before.p, before.v, before.a, after.a)
-    stateful = hasattr(env.executor, "scene") and jax.tree.leaves(after.executor)  # the kinematic one keeps None
-    scene = jax.vmap(env.executor.scene)(after.executor) if stateful else {}
+    scene = jax.vmap(env.executor.scene)(after.executor) if hasattr(env.executor, "scene") else {}
     return {"executed": q, "p": after.p, "v": after.v, "a": after.a, "obs": obs, "live": live,
             "limit_ratio": limit_ratios(env.limits, before.p, before.v, before.a, after.a, dt), "scene": scene}
 

@@ -235,9 +235,10 @@ def test_evaluate_cli_on_a_tiny_run(tiny_run, tmp_path):
     peers = metrics["online_peers"]
     assert [r["controller"].split(" (")[0] for r in peers] == ["policy", "Ruckig look-ahead"]
     assert "Online peers on the same 3 episodes" in result.stdout
-    assert peers[0]["end_reached"] == metrics["end_reached_rate"]
-    assert all(np.isfinite(r["joint_dev_mean"]) and "ok" in r["limit_audit"] for r in peers)
-    assert peers[1]["compute_per_decision_s"] > 0
+    for r in peers:   # what is printed is what metrics.json holds
+        assert f"{r['controller']:<40} end {100 * r['end_reached']:5.1f} %" in result.stdout
+        assert np.isfinite(r["joint_dev_mean"])
+    assert peers[1]["compute_mean_ms"] > 0
     from PIL import Image
 
     table = np.genfromtxt(out / "episodes.csv", delimiter=",", names=True)
